@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# The test command: installs everything it needs into .venv, lints, then runs the suite.
+# Extra arguments go to pytest (e.g. `bash scripts/test.sh -k hierarchy`).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+# shellcheck disable=SC1091
+source scripts/install.sh
+echo "[test] ruff check"
+ruff check .
+echo "[test] pytest"
+export MPLBACKEND=Agg
+python -m pytest "$@"

@@ -1,0 +1,25 @@
+"""Graph data: the AMG hierarchy, ``HierarchicalData`` and mesh builders."""
+
+from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.hierarchy import build_hierarchy, mesh_operator
+from torch_ampn.data.mesh import (
+    MultiComponentMesh,
+    cells_to_edge_index,
+    laminate_mesh,
+    rectangle_mesh,
+    stacked_plates,
+)
+from torch_ampn.data.node_type import NodeType
+
+__all__ = [
+    "HierarchicalData",
+    "MultiComponentMesh",
+    "NodeType",
+    "build_hierarchy",
+    "cells_to_edge_index",
+    "laminate_mesh",
+    "level_name",
+    "mesh_operator",
+    "rectangle_mesh",
+    "stacked_plates",
+]

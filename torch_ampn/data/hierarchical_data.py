@@ -1,0 +1,143 @@
+"""HierarchicalData: a PyG ``HeteroData`` holding an AMG graph hierarchy."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+from torch_geometric.data.storage import EdgeStorage, NodeStorage
+
+_LEVEL_RE = re.compile(r"^l(\d+)$")
+
+
+def level_name(level: int) -> str:
+    """Node type name of hierarchy level ``level`` (``0`` is the finest): ``"l{level}"``."""
+    return f"l{level}"
+
+
+class HierarchicalData(HeteroData):
+    r"""A graph hierarchy ``l0`` (fine mesh) .. ``lL`` (coarsest) as one heterogeneous graph.
+
+    Node types are ``"l0" .. "lL"``; edge types per level ``k``:
+
+    * ``("lk", "mesh", "lk")``: mesh edges of level ``k`` (both directions),
+    * ``("lk", "contact", "lk")``: contact edges (filled per step by
+      :class:`~torch_ampn.transforms.ComponentRadiusGraph`),
+    * ``("lk", "down", "lk+1")``: fine-to-coarse edges (non-zeros of the prolongator
+      :math:`P_k`, source fine node, target coarse node), ``edge_weight`` holds :math:`P_k`'s values,
+    * ``("lk+1", "up", "lk")``: the same edges reversed (non-zeros of :math:`R_k = P_k^\top`).
+
+    Level ``k >= 1`` stores ``root`` (``LongTensor[N_k]``): the level ``k-1`` node that each
+    coarse node stands for (root-node aggregation), offset correctly when batched.
+    Positions, component ids and node types of coarse nodes are those of their roots
+    (see :meth:`fine_index`).
+
+    It batches with :class:`torch_geometric.data.Batch` and
+    :class:`torch_geometric.loader.DataLoader` like any ``HeteroData``: edge indices are
+    offset per level and ``data["lk"].batch`` assigns coarse nodes to graphs.
+    """
+
+    # ---- structure -------------------------------------------------------------------
+    @property
+    def num_levels(self) -> int:
+        """Number of levels ``L + 1``."""
+        return sum(1 for t in self.node_types if _LEVEL_RE.match(t))
+
+    def _check_level(self, level: int, coarsest_ok: bool = True) -> int:
+        n = self.num_levels
+        hi = n if coarsest_ok else n - 1
+        if level < 0:
+            level += n
+        if not 0 <= level < hi:
+            raise IndexError(f"level {level} out of range for a hierarchy with {n} levels")
+        return level
+
+    def level(self, level: int) -> NodeStorage:
+        """Node store of level ``level`` (negative counts from the coarsest)."""
+        return self[level_name(self._check_level(level))]
+
+    def mesh(self, level: int) -> EdgeStorage:
+        """Edge store of the mesh edges of level ``level``."""
+        k = level_name(self._check_level(level))
+        return self[k, "mesh", k]
+
+    def contact(self, level: int) -> EdgeStorage:
+        """Edge store of the contact edges of level ``level``."""
+        k = level_name(self._check_level(level))
+        return self[k, "contact", k]
+
+    def down(self, level: int) -> EdgeStorage:
+        """Edge store of the down edges from level ``level`` to ``level + 1``."""
+        k = self._check_level(level, coarsest_ok=False)
+        return self[level_name(k), "down", level_name(k + 1)]
+
+    def up(self, level: int) -> EdgeStorage:
+        """Edge store of the up edges from level ``level + 1`` to ``level``."""
+        k = self._check_level(level, coarsest_ok=False)
+        return self[level_name(k + 1), "up", level_name(k)]
+
+    def num_nodes_per_level(self) -> list[int]:
+        """Node count of every level, finest first."""
+        return [int(self.level(k).num_nodes) for k in range(self.num_levels)]
+
+    def fine_index(self, level: int) -> Tensor:
+        """For each node of ``level``, the index of the fine (``l0``) node it stands for.
+
+        Composes the ``root`` maps of the levels in between; ``fine_index(0)`` is
+        ``arange(N_0)``. Use it to read coarse positions, components or node types from
+        fine-level tensors: ``pos_k = pos_0[data.fine_index(k)]``.
+
+        Returns:
+            ``LongTensor[N_level]``.
+        """
+        level = self._check_level(level)
+        if level == 0:
+            return torch.arange(int(self.level(0).num_nodes), device=self._device())
+        idx = self.level(level).root
+        for k in range(level - 1, 0, -1):
+            idx = self.level(k).root[idx]
+        return idx
+
+    def _device(self) -> torch.device:
+        for store in self.edge_stores:
+            if "edge_index" in store:
+                return store.edge_index.device
+        return torch.device("cpu")
+
+    # ---- batching --------------------------------------------------------------------
+    def __inc__(self, key: str, value: Any, store: NodeStorage | EdgeStorage | None = None, *args, **kwargs) -> Any:
+        if key == "root" and isinstance(store, NodeStorage):
+            m = _LEVEL_RE.match(store._key)
+            if m is not None and int(m.group(1)) > 0:
+                return self[level_name(int(m.group(1)) - 1)].num_nodes
+        return super().__inc__(key, value, store, *args, **kwargs)
+
+    # ---- display ---------------------------------------------------------------------
+    def summary(self) -> str:
+        """A table of nodes and edges per level."""
+        rows = [("level", "nodes", "mesh", "contact", "down", "up")]
+        for k in range(self.num_levels):
+            last = k == self.num_levels - 1
+            rows.append(
+                (
+                    level_name(k),
+                    str(self.level(k).num_nodes),
+                    str(_num_edges(self.mesh(k))),
+                    str(_num_edges(self.contact(k))),
+                    "-" if last else str(_num_edges(self.down(k))),
+                    "-" if last else str(_num_edges(self.up(k))),
+                )
+            )
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows]
+        return f"{type(self).__name__} with {self.num_levels} levels\n" + "\n".join(lines)
+
+
+def _num_edges(store: EdgeStorage) -> int:
+    return int(store.edge_index.size(1)) if "edge_index" in store else 0
+
+
+torch.serialization.add_safe_globals([HierarchicalData])

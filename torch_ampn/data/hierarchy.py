@@ -1,0 +1,353 @@
+"""AMG graph hierarchy (root-node smoothed aggregation from pyamg) for AMPNs."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyamg
+import scipy.sparse as sp
+import torch
+from torch import Tensor
+
+from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+
+#: Bump when the construction changes, so that cached hierarchies are rebuilt.
+HIERARCHY_ALGORITHM_VERSION = 1
+
+OPERATORS = ("adjacency", "laplacian")
+#: pyamg prolongation smoother per operator: energy minimisation with CG needs an SPD
+#: operator (the Laplacian); the adjacency ``A + I`` is indefinite, so it uses GMRES.
+SMOOTHERS = {
+    "adjacency": ("energy", {"krylov": "gmres"}),
+    "laplacian": ("energy", {"krylov": "cg"}),
+}
+DOWN_EDGES = ("smoothed", "tentative")
+
+
+@dataclass
+class AMGLevel:
+    """One coarsening step ``l -> l+1`` (all arrays on the CPU, NumPy/SciPy).
+
+    Attributes:
+        P: Smoothed prolongator, ``[n_l, n_{l+1}]`` CSR; ``R = P^T``.
+        T: Tentative prolongator (aggregation), ``[n_l, n_{l+1}]`` CSR, one non-zero per row.
+        root: Level-``l`` index of every coarse node's root, ``[n_{l+1}]``.
+        A_coarse: Galerkin operator ``R A_l P``, ``[n_{l+1}, n_{l+1}]`` CSR.
+        B_coarse: Near-null-space candidates of the coarse level, ``[n_{l+1}, 1]`` (pyamg's ``B``).
+    """
+
+    P: sp.csr_matrix
+    T: sp.csr_matrix
+    root: np.ndarray
+    A_coarse: sp.csr_matrix
+    B_coarse: np.ndarray
+
+
+def validate_edge_index(edge_index: Tensor, num_nodes: int) -> None:
+    """Raise ``ValueError`` with a readable message unless ``edge_index`` is a valid ``[2, E]`` graph."""
+    if not isinstance(edge_index, Tensor):
+        raise ValueError(f"edge_index must be a torch.Tensor, got {type(edge_index).__name__}")
+    if edge_index.dtype not in (torch.int64, torch.int32):
+        raise ValueError(f"edge_index must be an integer tensor (torch.long), got dtype {edge_index.dtype}")
+    if edge_index.dim() != 2 or edge_index.size(0) != 2:
+        raise ValueError(f"edge_index must have shape [2, E], got {list(edge_index.shape)}")
+    if isinstance(num_nodes, bool) or not isinstance(num_nodes, (int, np.integer)):
+        raise ValueError(f"num_nodes must be an int, got {type(num_nodes).__name__}")
+    if num_nodes <= 0:
+        raise ValueError(f"num_nodes must be positive (the graph is empty), got {num_nodes}")
+    if edge_index.size(1) == 0:
+        raise ValueError("edge_index has no edges: an AMG hierarchy needs a mesh graph with edges")
+    lo, hi = int(edge_index.min()), int(edge_index.max())
+    if lo < 0:
+        raise ValueError(f"edge_index contains negative node index {lo}")
+    if hi >= num_nodes:
+        raise ValueError(f"edge_index contains node index {hi}, out of range for num_nodes={num_nodes}")
+
+
+def mesh_operator(
+    edge_index: Tensor, num_nodes: int, operator: str = "adjacency", laplacian_shift: float = 1e-2
+) -> sp.csr_matrix:
+    """The fine-level operator ``A_0`` the hierarchy is built from.
+
+    Args:
+        edge_index: ``[2, E]`` mesh edges, one or both directions (symmetrised here).
+        num_nodes: ``N``.
+        operator: ``"adjacency"``: binary adjacency with self-loops ``A + I`` (ROBIN's choice,
+            the default); ``"laplacian"``: graph Laplacian ``D - A + shift * I``, symmetric
+            positive definite, the classic AMG input.
+        laplacian_shift: The ``shift`` of the Laplacian (makes it non-singular; isolated
+            nodes and the constant mode of each component).
+
+    Returns:
+        Symmetric ``[N, N]`` CSR matrix (float64).
+    """
+    if operator not in OPERATORS:
+        raise ValueError(f"operator must be one of {OPERATORS}, got {operator!r}")
+    ei = edge_index.detach().cpu().long().numpy()
+    keep = ei[0] != ei[1]
+    row, col = ei[0, keep], ei[1, keep]
+    adj = sp.coo_matrix((np.ones(row.size), (row, col)), shape=(num_nodes, num_nodes)).tocsr()
+    adj = ((adj + adj.T) > 0).astype(np.float64).tocsr()
+    eye = sp.identity(num_nodes, dtype=np.float64, format="csr")
+    if operator == "adjacency":
+        A = adj + eye
+    else:
+        if laplacian_shift <= 0:
+            raise ValueError(f"laplacian_shift must be positive, got {laplacian_shift}")
+        deg = np.asarray(adj.sum(axis=1)).ravel()
+        A = sp.diags(deg + laplacian_shift, format="csr") - adj
+    A = A.tocsr()
+    A.sort_indices()
+    return A
+
+
+def coarsen(
+    A: sp.csr_matrix, B: np.ndarray | None = None, smooth: str | tuple = SMOOTHERS["adjacency"]
+) -> AMGLevel | None:
+    """One root-node smoothed-aggregation step with pyamg, or ``None`` if nothing coarsens.
+
+    ``B`` are pyamg's near-null-space candidates of this level (``None``: constant vector,
+    pyamg's default on the fine level); passing each step's ``B_coarse`` to the next step
+    reproduces pyamg's own multi-level ``rootnode_solver``. pyamg's candidate improvement
+    (Gauss-Seidel sweeps on ``A B = 0``) is switched off: on ``A + I`` it diverges and
+    fills ``P`` with NaN (seen on the paper-sized laminate), so ``B`` stays constant.
+    ``smooth`` is pyamg's prolongation smoother. Nodes without off-diagonal
+    entries (isolated nodes, which pyamg leaves out of every aggregate) each become an
+    aggregate of their own. Coarse nodes are numbered in the order of their roots, so the
+    coarse numbering follows the fine one.
+    """
+    n = A.shape[0]
+    if B is None:
+        B = np.ones((n, 1))
+    off = A - sp.diags(A.diagonal(), format="csr")
+    off.eliminate_zeros()
+    connected = np.flatnonzero(np.diff(off.indptr) > 0)
+    isolated = np.flatnonzero(np.diff(off.indptr) == 0)
+
+    blocks_P, blocks_T, blocks_B, roots = [], [], [], []
+    if connected.size >= 2:
+        sub = A[connected][:, connected].tocsr()
+        ml = pyamg.aggregation.rootnode_solver(
+            sub, B=B[connected], smooth=smooth, improve_candidates=None, max_levels=2, max_coarse=1, keep=True
+        )
+        if len(ml.levels) >= 2:
+            lv = ml.levels[0]
+            P_sub, T_sub = lv.P.tocsr(), lv.T.tocsr()
+            nc = P_sub.shape[1]
+            embed = sp.csr_matrix((np.ones(connected.size), (connected, np.arange(connected.size))), shape=(n, connected.size))
+            blocks_P.append(embed @ P_sub)
+            blocks_T.append(embed @ T_sub)
+            roots.append(connected[np.asarray(lv.Cpts)[:nc]])
+            blocks_B.append(np.asarray(ml.levels[1].B))
+    if not roots:
+        return None  # nothing to aggregate: every node is its own (isolated) aggregate
+    if isolated.size:
+        single = sp.csr_matrix((np.ones(isolated.size), (isolated, np.arange(isolated.size))), shape=(n, isolated.size))
+        blocks_P.append(single)
+        blocks_T.append(single)
+        roots.append(isolated)
+        blocks_B.append(B[isolated])
+    P = sp.hstack(blocks_P, format="csr")
+    T = sp.hstack(blocks_T, format="csr")
+    root = np.concatenate(roots)
+    order = np.argsort(root, kind="stable")
+    P, T, root = P[:, order].tocsr(), T[:, order].tocsr(), root[order]
+    B_coarse = np.concatenate(blocks_B)[order]
+    for M in (P, T):
+        M.eliminate_zeros()
+        M.sort_indices()
+    R = P.T.tocsr()
+    A_coarse = ((R @ A) @ P).tocsr()
+    A_coarse.eliminate_zeros()
+    A_coarse.sort_indices()
+    return AMGLevel(P=P, T=T, root=root, A_coarse=A_coarse, B_coarse=B_coarse)
+
+
+def amg_levels(
+    A: sp.csr_matrix, max_levels: int, min_coarse_nodes: int, smooth: str | tuple = SMOOTHERS["adjacency"]
+) -> list[AMGLevel]:
+    """Coarsen ``A`` repeatedly: at most ``max_levels - 1`` steps, keeping a step only if its
+    coarse level has at least ``min_coarse_nodes`` nodes and fewer nodes than the level above."""
+    steps: list[AMGLevel] = []
+    B = None
+    while len(steps) + 1 < max_levels:
+        step = coarsen(A, B, smooth)
+        if step is None:
+            break
+        nc = step.P.shape[1]
+        if nc < min_coarse_nodes or nc >= A.shape[0]:
+            break
+        steps.append(step)
+        A, B = step.A_coarse, step.B_coarse
+    return steps
+
+
+def _off_diagonal_edges(A: sp.csr_matrix) -> Tensor:
+    coo = A.tocoo()
+    keep = coo.row != coo.col
+    ei = np.stack([coo.row[keep], coo.col[keep]]).astype(np.int64)
+    order = np.lexsort((ei[1], ei[0]))
+    return torch.from_numpy(np.ascontiguousarray(ei[:, order]))
+
+
+def _nonzeros(M: sp.csr_matrix) -> tuple[Tensor, Tensor]:
+    coo = M.tocoo()
+    order = np.lexsort((coo.col, coo.row))
+    ei = np.stack([coo.row[order], coo.col[order]]).astype(np.int64)
+    return torch.from_numpy(np.ascontiguousarray(ei)), torch.from_numpy(coo.data[order].astype(np.float32))
+
+
+def _cache_key(edge_index: Tensor, num_nodes: int, params: dict) -> str:
+    A = mesh_operator(edge_index, num_nodes, "adjacency")  # canonical (symmetric, sorted) topology
+    h = hashlib.sha256()
+    h.update(np.int64(num_nodes).tobytes())
+    h.update(A.indptr.astype(np.int64).tobytes())
+    h.update(A.indices.astype(np.int64).tobytes())
+    h.update(repr(sorted(params.items())).encode())
+    h.update(f"v{HIERARCHY_ALGORITHM_VERSION}-pyamg{pyamg.__version__}".encode())
+    return h.hexdigest()
+
+
+def _atomic_save(obj: object, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _to_dict(h: HierarchicalData) -> dict[str, Tensor]:
+    out: dict[str, Tensor] = {}
+    for k in range(h.num_levels):
+        out[f"{k}/num_nodes"] = torch.tensor(int(h.level(k).num_nodes))
+        out[f"{k}/mesh"] = h.mesh(k).edge_index
+        if k > 0:
+            out[f"{k}/root"] = h.level(k).root
+            out[f"{k}/down"] = h.down(k - 1).edge_index
+            out[f"{k}/down_weight"] = h.down(k - 1).edge_weight
+    return out
+
+
+def _from_dict(d: dict[str, Tensor]) -> HierarchicalData:
+    num_levels = sum(1 for key in d if key.endswith("/num_nodes"))
+    h = HierarchicalData()
+    for k in range(num_levels):
+        lk = level_name(k)
+        h[lk].num_nodes = int(d[f"{k}/num_nodes"])
+        h[lk, "mesh", lk].edge_index = d[f"{k}/mesh"]
+        h[lk, "contact", lk].edge_index = torch.empty(2, 0, dtype=torch.long)
+        if k > 0:
+            prev = level_name(k - 1)
+            h[lk].root = d[f"{k}/root"]
+            down = d[f"{k}/down"]
+            h[prev, "down", lk].edge_index = down
+            h[prev, "down", lk].edge_weight = d[f"{k}/down_weight"]
+            h[lk, "up", prev].edge_index = down.flip(0)
+            h[lk, "up", prev].edge_weight = d[f"{k}/down_weight"]
+    return h
+
+
+def build_hierarchy(
+    edge_index: Tensor,
+    num_nodes: int,
+    *,
+    max_levels: int = 4,
+    min_coarse_nodes: int = 16,
+    operator: str = "adjacency",
+    laplacian_shift: float = 1e-2,
+    down_edges: str = "smoothed",
+    cache_dir: str | os.PathLike | None = None,
+) -> HierarchicalData:
+    r"""Build the AMG graph hierarchy of a mesh with pyamg's root-node smoothed aggregation.
+
+    Level 0 is the given mesh. Each coarsening step ``l -> l+1`` runs
+    ``pyamg.aggregation.rootnode_solver`` on the level operator :math:`A_l` and keeps
+
+    * coarse nodes: one per aggregate, each the aggregate's *root* fine node
+      (``h["l{l+1}"].root``); nodes without neighbours are aggregates of their own,
+    * coarse mesh edges: off-diagonal non-zeros of the Galerkin operator
+      :math:`A_{l+1} = R_l A_l P_l` with :math:`R_l = P_l^\top`,
+    * down edges ``l -> l+1``: non-zeros of the smoothed prolongator :math:`P_l`
+      (or of the tentative aggregation operator with ``down_edges="tentative"``), with
+      its values as ``edge_weight``; up edges are the same pairs reversed.
+
+    Components (disconnected blocks of the graph) never share an aggregate. The result
+    depends only on the topology and is deterministic.
+
+    Args:
+        edge_index: ``LongTensor[2, E]`` undirected mesh edges of all components (one or
+            both directions; self-loops ignored).
+        num_nodes: Number of fine nodes ``N``.
+        max_levels: Maximum number of levels ``L + 1`` including the fine level.
+        min_coarse_nodes: A coarse level is added only if it has at least this many nodes
+            (and fewer than the level above); coarsening stops otherwise.
+        operator: ``"adjacency"`` (``A + I``, default, as ROBIN) or ``"laplacian"``
+            (``D - A + laplacian_shift * I``); see :func:`mesh_operator`.
+        laplacian_shift: Diagonal shift for ``operator="laplacian"``.
+        down_edges: ``"smoothed"`` (non-zeros of :math:`P`, default) or ``"tentative"``
+            (one down edge per fine node, to its aggregate).
+        cache_dir: If given, the hierarchy is stored there under a hash of the topology and
+            the options, and loaded from there on later calls.
+
+    Returns:
+        :class:`HierarchicalData` with ``num_nodes``, mesh, empty contact, down and up edges
+        per level and ``root`` on levels ``>= 1``; on ``edge_index``'s device.
+    """
+    validate_edge_index(edge_index, num_nodes)
+    num_nodes = int(num_nodes)
+    if max_levels < 1:
+        raise ValueError(f"max_levels must be >= 1, got {max_levels}")
+    if min_coarse_nodes < 1:
+        raise ValueError(f"min_coarse_nodes must be >= 1, got {min_coarse_nodes}")
+    if down_edges not in DOWN_EDGES:
+        raise ValueError(f"down_edges must be one of {DOWN_EDGES}, got {down_edges!r}")
+    if operator not in OPERATORS:
+        raise ValueError(f"operator must be one of {OPERATORS}, got {operator!r}")
+    device = edge_index.device
+
+    cache_path = None
+    if cache_dir is not None:
+        params = dict(
+            max_levels=max_levels,
+            min_coarse_nodes=min_coarse_nodes,
+            operator=operator,
+            laplacian_shift=float(laplacian_shift) if operator == "laplacian" else None,
+            down_edges=down_edges,
+        )
+        cache_path = Path(cache_dir) / f"hierarchy-{_cache_key(edge_index, num_nodes, params)[:32]}.pt"
+        if cache_path.exists():
+            return _from_dict(torch.load(cache_path, weights_only=True)).to(device)
+
+    A = mesh_operator(edge_index, num_nodes, operator, laplacian_shift)
+    steps = amg_levels(A, max_levels, min_coarse_nodes, SMOOTHERS[operator])
+
+    h = HierarchicalData()
+    l0 = level_name(0)
+    h[l0].num_nodes = num_nodes
+    h[l0, "mesh", l0].edge_index = _off_diagonal_edges(A)
+    h[l0, "contact", l0].edge_index = torch.empty(2, 0, dtype=torch.long)
+    for k, step in enumerate(steps):
+        fine, coarse = level_name(k), level_name(k + 1)
+        h[coarse].num_nodes = int(step.P.shape[1])
+        h[coarse].root = torch.from_numpy(step.root.astype(np.int64))
+        h[coarse, "mesh", coarse].edge_index = _off_diagonal_edges(step.A_coarse)
+        h[coarse, "contact", coarse].edge_index = torch.empty(2, 0, dtype=torch.long)
+        down_index, down_weight = _nonzeros(step.P if down_edges == "smoothed" else step.T)
+        h[fine, "down", coarse].edge_index = down_index
+        h[fine, "down", coarse].edge_weight = down_weight
+        h[coarse, "up", fine].edge_index = down_index.flip(0)
+        h[coarse, "up", fine].edge_weight = down_weight
+
+    if cache_path is not None:
+        _atomic_save(_to_dict(h), cache_path)
+    return h.to(device)
