@@ -108,7 +108,9 @@ class HierarchicalData(HeteroData):
         return torch.device("cpu")
 
     # ---- batching --------------------------------------------------------------------
-    def __inc__(self, key: str, value: Any, store: NodeStorage | EdgeStorage | None = None, *args, **kwargs) -> Any:
+    def __inc__(
+        self, key: str, value: Any, store: NodeStorage | EdgeStorage | None = None, *args, **kwargs
+    ) -> Any:
         if key == "root" and isinstance(store, NodeStorage):
             m = _LEVEL_RE.match(store._key)
             if m is not None and int(m.group(1)) > 0:
@@ -132,7 +134,7 @@ class HierarchicalData(HeteroData):
                 )
             )
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-        lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows]
+        lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         return f"{type(self).__name__} with {self.num_levels} levels\n" + "\n".join(lines)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import numpy as np
 import pyamg
 import scipy.sparse as sp
 import torch
+from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
@@ -106,73 +108,99 @@ def mesh_operator(
     return A
 
 
+def _rootnode_step(
+    A: sp.csr_matrix, B: np.ndarray, smooth: str | tuple
+) -> tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray, np.ndarray] | None:
+    """Pyamg's first root-node aggregation step on one connected block: ``(P, T, roots, B_coarse)``."""
+    ml = pyamg.aggregation.rootnode_solver(
+        A, B=B, smooth=smooth, improve_candidates=None, max_levels=2, max_coarse=1, keep=True
+    )
+    if len(ml.levels) < 2:
+        return None
+    lv = ml.levels[0]
+    nc = lv.P.shape[1]
+    return lv.P.tocsr(), lv.T.tocsr(), np.asarray(lv.Cpts)[:nc], np.asarray(ml.levels[1].B)
+
+
 def coarsen(
     A: sp.csr_matrix, B: np.ndarray | None = None, smooth: str | tuple = SMOOTHERS["adjacency"]
 ) -> AMGLevel | None:
     """One root-node smoothed-aggregation step with pyamg, or ``None`` if nothing coarsens.
 
-    ``B`` are pyamg's near-null-space candidates of this level (``None``: constant vector,
-    pyamg's default on the fine level); passing each step's ``B_coarse`` to the next step
-    reproduces pyamg's own multi-level ``rootnode_solver``. pyamg's candidate improvement
-    (Gauss-Seidel sweeps on ``A B = 0``) is switched off: on ``A + I`` it diverges and
-    fills ``P`` with NaN (seen on the paper-sized laminate), so ``B`` stays constant.
-    ``smooth`` is pyamg's prolongation smoother. Nodes without off-diagonal
-    entries (isolated nodes, which pyamg leaves out of every aggregate) each become an
-    aggregate of their own. Coarse nodes are numbered in the order of their roots, so the
-    coarse numbering follows the fine one.
+    pyamg runs on every connected block of ``A`` (every component) separately, so a
+    component's hierarchy does not depend on which other components share the graph: a
+    batch of hierarchies equals the hierarchy of the disjoint union. ``B`` are pyamg's
+    near-null-space candidates of this level (``None``: the constant vector, pyamg's
+    default on the fine level); passing each step's ``B_coarse`` to the next step
+    reproduces pyamg's own multi-level ``rootnode_solver`` on a connected graph. pyamg's
+    candidate improvement (Gauss-Seidel sweeps on ``A B = 0``) is switched off: on
+    ``A + I`` it diverges and fills ``P`` with NaN (seen on the paper-sized laminate), so
+    ``B`` stays constant. ``smooth`` is pyamg's prolongation smoother. Blocks of one node
+    (isolated nodes, which pyamg leaves out of every aggregate) become aggregates of their
+    own. Coarse nodes are numbered in the order of their roots, so the coarse numbering
+    follows the fine one.
     """
     n = A.shape[0]
     if B is None:
         B = np.ones((n, 1))
     off = A - sp.diags(A.diagonal(), format="csr")
     off.eliminate_zeros()
-    connected = np.flatnonzero(np.diff(off.indptr) > 0)
-    isolated = np.flatnonzero(np.diff(off.indptr) == 0)
+    num_blocks, labels = connected_components(off, directed=False)
+    nodes_by_block = np.split(np.argsort(labels, kind="stable"), np.cumsum(np.bincount(labels))[:-1])
 
-    blocks_P, blocks_T, blocks_B, roots = [], [], [], []
-    if connected.size >= 2:
-        sub = A[connected][:, connected].tocsr()
-        ml = pyamg.aggregation.rootnode_solver(
-            sub, B=B[connected], smooth=smooth, improve_candidates=None, max_levels=2, max_coarse=1, keep=True
-        )
-        if len(ml.levels) >= 2:
-            lv = ml.levels[0]
-            P_sub, T_sub = lv.P.tocsr(), lv.T.tocsr()
-            nc = P_sub.shape[1]
-            embed = sp.csr_matrix((np.ones(connected.size), (connected, np.arange(connected.size))), shape=(n, connected.size))
-            blocks_P.append(embed @ P_sub)
-            blocks_T.append(embed @ T_sub)
-            roots.append(connected[np.asarray(lv.Cpts)[:nc]])
-            blocks_B.append(np.asarray(ml.levels[1].B))
-    if not roots:
-        return None  # nothing to aggregate: every node is its own (isolated) aggregate
-    if isolated.size:
-        single = sp.csr_matrix((np.ones(isolated.size), (isolated, np.arange(isolated.size))), shape=(n, isolated.size))
-        blocks_P.append(single)
-        blocks_T.append(single)
-        roots.append(isolated)
-        blocks_B.append(B[isolated])
-    P = sp.hstack(blocks_P, format="csr")
-    T = sp.hstack(blocks_T, format="csr")
+    rows_P, vals_P, cols_P, rows_T, cols_T, vals_T, roots, B_coarse = [], [], [], [], [], [], [], []
+    nc, coarsened = 0, False
+    for nodes in nodes_by_block:
+        step = _rootnode_step(A[nodes][:, nodes].tocsr(), B[nodes], smooth) if nodes.size > 1 else None
+        if step is None:  # one node (or nothing to coarsen): each node its own aggregate
+            P_b = T_b = sp.identity(nodes.size, format="csr")
+            root_b, B_b = np.arange(nodes.size), B[nodes]
+        else:
+            P_b, T_b, root_b, B_b = step
+            coarsened = True
+        for M, rows, cols, vals in (
+            (P_b.tocoo(), rows_P, cols_P, vals_P),
+            (T_b.tocoo(), rows_T, cols_T, vals_T),
+        ):
+            rows.append(nodes[M.row])
+            cols.append(M.col + nc)
+            vals.append(M.data)
+        roots.append(nodes[root_b])
+        B_coarse.append(B_b)
+        nc += P_b.shape[1]
+    if not coarsened:
+        return None
+
+    # Number coarse nodes by their roots' fine indices.
     root = np.concatenate(roots)
     order = np.argsort(root, kind="stable")
-    P, T, root = P[:, order].tocsr(), T[:, order].tocsr(), root[order]
-    B_coarse = np.concatenate(blocks_B)[order]
-    for M in (P, T):
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+
+    def assemble(rows: list, cols: list, vals: list) -> sp.csr_matrix:
+        M = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), rank[np.concatenate(cols)])), shape=(n, nc)
+        )
         M.eliminate_zeros()
         M.sort_indices()
+        return M
+
+    P, T = assemble(rows_P, cols_P, vals_P), assemble(rows_T, cols_T, vals_T)
     R = P.T.tocsr()
     A_coarse = ((R @ A) @ P).tocsr()
     A_coarse.eliminate_zeros()
     A_coarse.sort_indices()
-    return AMGLevel(P=P, T=T, root=root, A_coarse=A_coarse, B_coarse=B_coarse)
+    return AMGLevel(P=P, T=T, root=root[order], A_coarse=A_coarse, B_coarse=np.concatenate(B_coarse)[order])
 
 
 def amg_levels(
     A: sp.csr_matrix, max_levels: int, min_coarse_nodes: int, smooth: str | tuple = SMOOTHERS["adjacency"]
 ) -> list[AMGLevel]:
-    """Coarsen ``A`` repeatedly: at most ``max_levels - 1`` steps, keeping a step only if its
-    coarse level has at least ``min_coarse_nodes`` nodes and fewer nodes than the level above."""
+    """Coarsen ``A`` repeatedly with :func:`coarsen`.
+
+    At most ``max_levels - 1`` steps; a step is kept only if its coarse level has at least
+    ``min_coarse_nodes`` nodes and fewer nodes than the level above, else coarsening stops.
+    """
     steps: list[AMGLevel] = []
     B = None
     while len(steps) + 1 < max_levels:
@@ -226,19 +254,19 @@ def _atomic_save(obj: object, path: Path) -> None:
         raise
 
 
-def _to_dict(h: HierarchicalData) -> dict[str, Tensor]:
-    out: dict[str, Tensor] = {}
-    for k in range(h.num_levels):
-        out[f"{k}/num_nodes"] = torch.tensor(int(h.level(k).num_nodes))
-        out[f"{k}/mesh"] = h.mesh(k).edge_index
-        if k > 0:
-            out[f"{k}/root"] = h.level(k).root
-            out[f"{k}/down"] = h.down(k - 1).edge_index
-            out[f"{k}/down_weight"] = h.down(k - 1).edge_weight
+def _to_dict(A: sp.csr_matrix, steps: list[AMGLevel], down_edges: str) -> dict[str, Tensor]:
+    """Flat tensor dictionary of a hierarchy (the on-disk cache format)."""
+    out: dict[str, Tensor] = {"0/num_nodes": torch.tensor(A.shape[0]), "0/mesh": _off_diagonal_edges(A)}
+    for k, step in enumerate(steps, start=1):
+        out[f"{k}/num_nodes"] = torch.tensor(step.P.shape[1])
+        out[f"{k}/mesh"] = _off_diagonal_edges(step.A_coarse)
+        out[f"{k}/root"] = torch.from_numpy(step.root.astype(np.int64))
+        out[f"{k}/down"], out[f"{k}/down_weight"] = _nonzeros(step.P if down_edges == "smoothed" else step.T)
     return out
 
 
 def _from_dict(d: dict[str, Tensor]) -> HierarchicalData:
+    """:class:`HierarchicalData` from the tensor dictionary of :func:`_to_dict`."""
     num_levels = sum(1 for key in d if key.endswith("/num_nodes"))
     h = HierarchicalData()
     for k in range(num_levels):
@@ -326,28 +354,14 @@ def build_hierarchy(
         )
         cache_path = Path(cache_dir) / f"hierarchy-{_cache_key(edge_index, num_nodes, params)[:32]}.pt"
         if cache_path.exists():
-            return _from_dict(torch.load(cache_path, weights_only=True)).to(device)
+            try:
+                return _from_dict(torch.load(cache_path, weights_only=True)).to(device)
+            except Exception as err:  # unreadable or incomplete file: rebuild and overwrite it
+                warnings.warn(f"ignoring unreadable hierarchy cache file {cache_path}: {err}", stacklevel=2)
 
     A = mesh_operator(edge_index, num_nodes, operator, laplacian_shift)
     steps = amg_levels(A, max_levels, min_coarse_nodes, SMOOTHERS[operator])
-
-    h = HierarchicalData()
-    l0 = level_name(0)
-    h[l0].num_nodes = num_nodes
-    h[l0, "mesh", l0].edge_index = _off_diagonal_edges(A)
-    h[l0, "contact", l0].edge_index = torch.empty(2, 0, dtype=torch.long)
-    for k, step in enumerate(steps):
-        fine, coarse = level_name(k), level_name(k + 1)
-        h[coarse].num_nodes = int(step.P.shape[1])
-        h[coarse].root = torch.from_numpy(step.root.astype(np.int64))
-        h[coarse, "mesh", coarse].edge_index = _off_diagonal_edges(step.A_coarse)
-        h[coarse, "contact", coarse].edge_index = torch.empty(2, 0, dtype=torch.long)
-        down_index, down_weight = _nonzeros(step.P if down_edges == "smoothed" else step.T)
-        h[fine, "down", coarse].edge_index = down_index
-        h[fine, "down", coarse].edge_weight = down_weight
-        h[coarse, "up", fine].edge_index = down_index.flip(0)
-        h[coarse, "up", fine].edge_weight = down_weight
-
+    tensors = _to_dict(A, steps, down_edges)
     if cache_path is not None:
-        _atomic_save(_to_dict(h), cache_path)
-    return h.to(device)
+        _atomic_save(tensors, cache_path)
+    return _from_dict(tensors).to(device)

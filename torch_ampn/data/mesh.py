@@ -191,7 +191,12 @@ def laminate_mesh(
         pos, cells = rectangle_mesh(n, n, (ply_size, ply_size), (0.0, 0.0, k * ply_gap), "triangle", dtype)
         parts.append((f"ply{k}", pos, cells, NodeType.PLY))
     punch_pos, punch_cells = rectangle_mesh(
-        66 * scale, 65 * scale, (0.9 * ply_size, 0.9 * ply_size), (0.0, 0.0, num_plies * ply_gap), "quad", dtype
+        66 * scale,
+        65 * scale,
+        (0.9 * ply_size, 0.9 * ply_size),
+        (0.0, 0.0, num_plies * ply_gap),
+        "quad",
+        dtype,
     )
     parts.append(("punch", punch_pos, punch_cells, NodeType.PUNCH))
     parts.append(("die", die_pos, die_cells, NodeType.DIE))
