@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from typing import Any
 
@@ -9,6 +10,8 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 from torch_geometric.data.storage import EdgeStorage, NodeStorage
+
+from torch_ampn.data.io import atomic_torch_save
 
 _LEVEL_RE = re.compile(r"^l(\d+)$")
 
@@ -117,6 +120,22 @@ class HierarchicalData(HeteroData):
                 return self[level_name(int(m.group(1)) - 1)].num_nodes
         return super().__inc__(key, value, store, *args, **kwargs)
 
+    # ---- files -----------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        """Write to ``path`` atomically, in a form that :meth:`load` reads with ``weights_only=True``.
+
+        (``torch.save(data, path)`` works too, but, as for every PyG data object, reading it
+        back needs ``torch.load(path, weights_only=False)``.)
+        """
+        atomic_torch_save(self.to_dict(), path)
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike, map_location: str | torch.device | None = None
+    ) -> HierarchicalData:
+        """Read a file written by :meth:`save` (safe ``weights_only`` unpickling)."""
+        return cls.from_dict(torch.load(path, map_location=map_location, weights_only=True))
+
     # ---- display ---------------------------------------------------------------------
     def summary(self) -> str:
         """A table of nodes and edges per level."""
@@ -140,6 +159,3 @@ class HierarchicalData(HeteroData):
 
 def _num_edges(store: EdgeStorage) -> int:
     return int(store.edge_index.size(1)) if "edge_index" in store else 0
-
-
-torch.serialization.add_safe_globals([HierarchicalData])

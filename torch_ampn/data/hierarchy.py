@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.io import atomic_torch_save
 
 #: Bump when the construction changes, so that cached hierarchies are rebuilt.
 HIERARCHY_ALGORITHM_VERSION = 1
@@ -241,19 +241,6 @@ def _cache_key(edge_index: Tensor, num_nodes: int, params: dict) -> str:
     return h.hexdigest()
 
 
-def _atomic_save(obj: object, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _to_dict(A: sp.csr_matrix, steps: list[AMGLevel], down_edges: str) -> dict[str, Tensor]:
     """Flat tensor dictionary of a hierarchy (the on-disk cache format)."""
     out: dict[str, Tensor] = {"0/num_nodes": torch.tensor(A.shape[0]), "0/mesh": _off_diagonal_edges(A)}
@@ -363,5 +350,5 @@ def build_hierarchy(
     steps = amg_levels(A, max_levels, min_coarse_nodes, SMOOTHERS[operator])
     tensors = _to_dict(A, steps, down_edges)
     if cache_path is not None:
-        _atomic_save(tensors, cache_path)
+        atomic_torch_save(tensors, cache_path)
     return _from_dict(tensors).to(device)
