@@ -9,17 +9,24 @@ from torch_ampn.data.mesh import (
     rectangle_mesh,
     stacked_plates,
 )
+from torch_ampn.data.meshio_io import export_vtu_series, export_xdmf, read_time_series
 from torch_ampn.data.node_type import NodeType
+from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 
 __all__ = [
     "HierarchicalData",
     "MultiComponentMesh",
     "NodeType",
+    "Trajectory",
+    "TrajectoryFormatError",
     "build_hierarchy",
     "cells_to_edge_index",
+    "export_vtu_series",
+    "export_xdmf",
     "laminate_mesh",
     "level_name",
     "mesh_operator",
+    "read_time_series",
     "rectangle_mesh",
     "stacked_plates",
 ]

@@ -1,0 +1,185 @@
+"""Physical sanity of the embedded stamp-forming simulator on a coarse run."""
+
+import math
+import os
+
+import pytest
+import torch
+
+from torch_ampn.data import NodeType
+from torch_ampn.sim import StampFormingConfig, simulate, simulate_batch
+from torch_ampn.sim.geometry import die_surface, punch_surface
+from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
+
+CFG = StampFormingConfig(ply_cells=10, punch_cells=(8, 8), die_cells=(9, 9))
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return simulate_batch(CFG, seeds=[0, 1], compile=bool(int(os.environ.get("AMPN_TEST_COMPILE", "0"))))
+
+
+def test_tools_follow_their_prescribed_motion(runs):
+    traj = runs[0]
+    assert traj.pos.shape[0] == CFG.num_steps + 1
+    punch = traj.node_type == NodeType.PUNCH
+    die = traj.node_type == NodeType.DIE
+    u = traj.displacement()
+    assert torch.allclose(u[-1, punch, 2], torch.full((int(punch.sum()),), -60.0), atol=1e-4)
+    assert torch.allclose(u[:, punch, :2], torch.zeros_like(u[:, punch, :2]))
+    expected = -60.0 * torch.arange(CFG.num_steps + 1) / CFG.num_steps
+    assert torch.allclose(u[:, punch, 2], expected[:, None].expand(-1, int(punch.sum())), atol=1e-4)
+    assert torch.equal(u[:, die], torch.zeros_like(u[:, die]))
+
+
+def test_plies_are_formed_into_the_die(runs):
+    traj = runs[0]
+    ply = traj.ply_mask
+    pos0 = traj.pos[0]
+    # the bottom ply's node nearest to the dome apex ends at the die's cavity bottom
+    apex = torch.tensor([CFG.dome_centre, 0.0])
+    bottom = ply & (traj.component == 0)
+    i = torch.where(bottom, (pos0[:, :2] - apex).norm(dim=1), torch.inf).argmin()
+    depth = CFG.dome_depth + 0.5 * CFG.ply_thickness
+    assert traj.pos[-1, i, 2].item() == pytest.approx(-depth, abs=0.5)
+    # travel of the punch beyond first contact, minus nothing: the stack is pressed flat
+    assert traj.displacement()[-1, i, 2].item() == pytest.approx(-(CFG.stroke - CFG.punch_clearance), abs=0.6)
+    # material is drawn in from the free edge e1 = ply_size[0]
+    edge = ply & ((pos0[:, 0] - CFG.ply_size[0]).abs() < 1e-6)
+    assert traj.pos[-1, edge, 0].mean() < CFG.ply_size[0] - 5.0
+
+
+def test_no_penetration_of_tools_beyond_tolerance(runs):
+    """Distance along the tool normal from ply k to its tool, less the plies between: >= -1 mm."""
+    tol = 1.0  # mm (two ply thicknesses: squeezed folds at the end of the stroke), stated in the README
+    for traj in runs:
+        ply = traj.ply_mask
+        layer = traj.component[ply].double()
+        h = CFG.ply_thickness
+        for k in range(CFG.num_steps + 1):
+            x = traj.pos[k, ply].double()
+            travel = CFG.stroke * k / CFG.num_steps
+            die_z, die_grad = die_surface(x[:, :2], CFG)
+            punch_z, punch_grad = punch_surface(x[:, :2], travel, CFG)
+            die_gap = (x[:, 2] - (die_z + layer * h)) * torch.rsqrt(1 + die_grad.pow(2).sum(1))
+            punch_gap = (punch_z - (CFG.num_plies - 1 - layer) * h - x[:, 2]) * torch.rsqrt(
+                1 + punch_grad.pow(2).sum(1)
+            )
+            assert die_gap.min() > -tol, f"die penetration {die_gap.min():.2f} mm at step {k}"
+            assert punch_gap.min() > -tol, f"punch penetration {punch_gap.min():.2f} mm at step {k}"
+
+
+def test_plies_keep_their_stacking_order(runs):
+    traj = runs[0]
+    per_ply = int((traj.component == 0).sum())
+    for k in range(0, CFG.num_steps + 1, 10):
+        x = traj.pos[k]
+        for p in range(1, CFG.num_plies):
+            upper, lower = x[p * per_ply : (p + 1) * per_ply], x[(p - 1) * per_ply : p * per_ply]
+            # distance of every upper node to the nearest lower node: never (nearly) coincident
+            d = torch.cdist(upper.double(), lower.double()).min(1).values
+            assert (d > 0.5 * CFG.ply_thickness).float().mean() > 0.98, f"plies {p - 1}/{p} merge at step {k}"
+
+
+def test_symmetry_conditions_hold(runs):
+    for traj in runs:
+        ply = traj.ply_mask
+        pos0 = traj.pos[0]
+        on_x0 = ply & (pos0[:, 0].abs() < 1e-6)
+        on_y0 = ply & (pos0[:, 1].abs() < 1e-6)
+        assert on_x0.sum() > 0 and on_y0.sum() > 0
+        assert traj.pos[:, on_x0, 0].abs().max() < 1e-6
+        assert traj.pos[:, on_y0, 1].abs().max() < 1e-6
+        assert traj.pos[:, ply, :2].min() > -1e-6  # nothing crosses the symmetry planes
+
+
+def test_motion_stays_bounded(runs):
+    for traj in runs:
+        assert torch.isfinite(traj.pos).all()
+        step = (traj.pos[1:] - traj.pos[:-1]).norm(dim=-1)  # mm per saved step
+        assert step.max() < 25.0
+        assert step[:, traj.ply_mask].mean() < 1.5  # punch moves 1.2 mm per step
+
+
+def test_same_seed_same_output_and_grippers_matter(runs):
+    alone = simulate(CFG, seed=0)
+    assert torch.equal(alone.pos, runs[0].pos)  # batching does not change a trajectory
+    ply = runs[0].ply_mask
+    diff = (runs[0].pos[-1, ply] - runs[1].pos[-1, ply]).norm(dim=-1)
+    assert diff.pow(2).mean().sqrt() > 0.05  # other gripper settings, measurably other shapes
+    assert not torch.equal(runs[0].gripper_force, runs[1].gripper_force)
+    f0, f1 = runs[0].gripper_force, runs[1].gripper_force
+    assert ((f0 >= 0) & (f0 <= 100) & (f1 >= 0) & (f1 <= 100)).all()
+
+
+def test_trajectory_is_valid_and_round_trips(runs, tmp_path):
+    from torch_ampn.data import Trajectory
+
+    traj = runs[0]
+    traj.validate()
+    traj.save(tmp_path / "t.pt")
+    back = Trajectory.load(tmp_path / "t.pt")
+    assert torch.equal(back.pos, traj.pos)
+    assert back.meta["seed"] == 0 and back.meta["config"]["ply_cells"] == 10
+    fiber = traj.fiber[traj.ply_mask]
+    assert torch.allclose(fiber.norm(dim=1), torch.ones(fiber.size(0)))
+    angles = torch.rad2deg(torch.atan2(fiber[:, 1], fiber[:, 0])).round()
+    assert set(angles.unique().tolist()) == {0.0, 45.0, 90.0, -45.0}
+
+
+def _random_sheet(seed: int = 0):
+    from torch_ampn.data import rectangle_mesh
+
+    pos, tri = rectangle_mesh(5, 4, (5.0, 4.0), dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    x = pos + 0.2 * torch.randn(pos.shape, generator=g, dtype=torch.float64)
+    return pos, tri, x
+
+
+def test_membrane_forces_are_minus_energy_gradient():
+    pos, tri, x = _random_sheet()
+    angle = torch.full((tri.size(0),), math.radians(30.0), dtype=torch.float64)
+    membrane = OrthotropicMembrane(pos[:, :2], tri, angle, 100.0, 10.0, 1.0, 0.2)
+    xr = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(membrane.energy(xr), xr)
+    assert torch.allclose(membrane.forces(x), -grad, atol=1e-10)
+    # no force in the reference state or after a rigid rotation
+    rot = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert membrane.forces(pos).abs().max() < 1e-12
+    assert membrane.forces(pos @ rot.T + 3.0).abs().max() < 1e-10
+
+
+def test_membrane_is_stiffer_along_the_fibre():
+    pos, tri, _ = _random_sheet()
+    angle = torch.zeros(tri.size(0), dtype=torch.float64)
+    membrane = OrthotropicMembrane(pos[:, :2], tri, angle, 100.0, 10.0, 1.0, 1.0)
+    stretch_e1 = pos * torch.tensor([1.01, 1.0, 1.0], dtype=torch.float64)
+    stretch_e2 = pos * torch.tensor([1.0, 1.01, 1.0], dtype=torch.float64)
+    assert membrane.energy(stretch_e1) / membrane.energy(stretch_e2) == pytest.approx(10.0, rel=1e-2)
+
+
+def test_bending_energy_gradient_and_invariance():
+    pos, tri, x = _random_sheet(1)
+    interior = (pos[:, 0] > 0) & (pos[:, 0] < 5) & (pos[:, 1] > 0) & (pos[:, 1] < 4)
+    bending = QuadraticBending(pos[:, :2], tri, interior, 3.0)
+    xr = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(bending.energy(xr), xr)
+    assert torch.allclose(bending.forces(x), -grad, atol=1e-10)
+    rot = torch.linalg.matrix_exp(
+        torch.tensor([[0.0, -0.3, 0.2], [0.3, 0.0, -0.1], [-0.2, 0.1, 0.0]]).double()
+    )
+    assert bending.energy(pos @ rot.T + 1.0) < 1e-20  # rigid motions of the flat sheet
+    bent = pos.clone()
+    bent[:, 2] = 0.1 * (pos[:, 0] - 2.5) ** 2  # a cylinder-like bend costs energy
+    assert bending.energy(bent) > 1e-3
+
+
+def test_unstable_or_invalid_settings_are_refused():
+    with pytest.raises(ValueError, match="substeps=1 is unstable"):
+        simulate(
+            StampFormingConfig(ply_cells=4, punch_cells=(2, 2), die_cells=(2, 2), num_steps=2, substeps=1)
+        )
+    with pytest.raises(ValueError, match="ply_cells"):
+        simulate(StampFormingConfig(ply_cells=1))
+    with pytest.raises(ValueError, match="gripper_force_range"):
+        simulate(StampFormingConfig(gripper_force_range=(10.0, 0.0)))

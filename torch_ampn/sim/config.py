@@ -1,0 +1,111 @@
+"""Settings of the embedded quarter double-dome stamp-forming simulator."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+
+@dataclass
+class StampFormingConfig:
+    """Process, geometry, material and solver settings (units: mm, N, s).
+
+    The defaults give the coarse model used by tests and the quickstart (16 x 16 x 2
+    triangles per ply); :meth:`paper` gives the seed paper's resolution (3,200 triangles per
+    ply, 4,290-quad punch, 5,100-quad die).
+
+    Geometry: a quarter of a double-dome part, cut along the symmetry planes e1 = 0 and
+    e2 = 0. Plies cover ``[0, ply_size[0]] x [0, ply_size[1]]``, stacked ``ply_thickness``
+    apart starting at e3 = 0, on a fixed die. The punch moves ``stroke`` mm down along e3
+    over ``duration`` s; its dome apex starts ``punch_clearance`` mm above the stack.
+
+    Dynamics: explicit (semi-implicit Euler) time integration with lumped nodal masses
+    ``areal_mass`` (t/mm^2, i.e. N s^2/mm^3; scaled up from the physical ~1e-9, as explicit
+    FEM codes do) and mass-proportional viscous ``damping`` (1/s). ``substeps`` per saved
+    step is chosen from the stability limit (``time_step_safety`` times the critical step)
+    when ``None``; a fixed value that is unstable is refused. The physics does not depend
+    on ``substeps``, so refining it converges.
+    """
+
+    # discretisation
+    ply_cells: int = 16
+    punch_cells: tuple[int, int] = (14, 14)
+    die_cells: tuple[int, int] = (16, 16)
+    num_steps: int = 50
+    substeps: int | None = None
+
+    # geometry
+    ply_size: tuple[float, float] = (150.0, 150.0)
+    ply_angles: tuple[float, ...] = (0.0, 45.0, 90.0, -45.0)
+    ply_thickness: float = 0.5
+    tool_size: tuple[float, float] = (165.0, 165.0)
+    dome_depth: float = 50.0
+    dome_centre: float = 55.0
+    dome_axes: tuple[float, float] = (70.0, 60.0)
+    dome_flat_top: float = 0.35
+    die_clearance: float = 3.0
+
+    # process
+    stroke: float = 60.0
+    duration: float = 1.0
+    punch_clearance: float = 10.0
+    num_grippers: int = 2
+    gripper_force_range: tuple[float, float] = (0.0, 100.0)
+    gripper_position_range: tuple[float, float] = (0.15, 0.85)
+    gripper_anchor_distance: float = 80.0
+
+    # material and contact (effective values; the mass is scaled up, as in explicit FEM,
+    # so that the explicit time step stays affordable)
+    fiber_stiffness: float = 2000.0
+    transverse_stiffness: float = 100.0
+    shear_stiffness: float = 20.0
+    compression_ratio: float = 0.2
+    bending_stiffness: float = 500.0
+    contact_stiffness: float = 2000.0
+    friction_tool: float = 0.3
+    friction_ply: float = 0.2
+    areal_mass: float = 6e-6
+    damping: float = 20.0
+    time_step_safety: float = 0.6
+
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def paper(cls, **overrides) -> StampFormingConfig:
+        """The seed paper's resolution: 40 x 40 x 2 triangles per ply, 66 x 65 punch and 75 x 68 die quads."""
+        values = dict(ply_cells=40, punch_cells=(66, 65), die_cells=(75, 68))
+        values.update(overrides)
+        return cls(**values)
+
+    @property
+    def num_plies(self) -> int:
+        """Number of plies ``P``."""
+        return len(self.ply_angles)
+
+    def to_dict(self) -> dict:
+        """Plain ``dict`` (stored in the trajectory's ``meta``)."""
+        return asdict(self)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` for settings the simulator cannot run."""
+        checks = [
+            (self.ply_cells >= 2, "ply_cells must be >= 2"),
+            (min(self.punch_cells) >= 1 and min(self.die_cells) >= 1, "tool cells must be >= 1"),
+            (self.num_steps >= 1, "num_steps must be >= 1"),
+            (self.substeps is None or self.substeps >= 1, "substeps must be None (automatic) or >= 1"),
+            (self.areal_mass > 0, "areal_mass must be positive"),
+            (0 < self.time_step_safety <= 1, "time_step_safety must be in (0, 1]"),
+            (self.num_plies >= 1, "ply_angles must list at least one ply"),
+            (self.ply_thickness > 0, "ply_thickness must be positive"),
+            (0 <= self.gripper_force_range[0] <= self.gripper_force_range[1], "bad gripper_force_range"),
+            (
+                0 <= self.gripper_position_range[0] <= self.gripper_position_range[1] <= 1,
+                "bad gripper_position_range",
+            ),
+            (self.num_grippers in (0, 1, 2), "num_grippers must be 0, 1 or 2 (one per free edge)"),
+            (self.duration > 0 and self.stroke >= 0, "duration must be positive and stroke non-negative"),
+            (0 < self.dome_flat_top < 1, "dome_flat_top must be in (0, 1)"),
+            (self.damping >= 0, "damping must be non-negative"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"StampFormingConfig: {msg}")

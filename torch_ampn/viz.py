@@ -1,0 +1,85 @@
+"""Plots of laminates and trajectories (matplotlib, headless-safe)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torch_ampn.data.node_type import NodeType
+
+
+def plot_laminate(
+    ax: Any,
+    pos: Tensor,
+    cells: list[Tensor],
+    node_type: Tensor,
+    color: Tensor,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    cmap: str = "jet",
+    show_tools: bool = True,
+    mirror: bool = True,
+) -> Any:
+    """Draw the plies (coloured by ``color`` per node) and, faintly, the tools on a 3-D axis.
+
+    Args:
+        ax: A matplotlib 3-D axis (``projection="3d"``).
+        pos: Node positions ``[N, 3]``.
+        cells: One cell tensor per component (triangles for plies, quads for tools).
+        node_type: ``[N]``; components whose nodes are plies are drawn coloured.
+        color: Per-node scalar ``[N]`` (e.g. e3 displacement).
+        vmin: Lower end of the colour range (default: minimum of ``color`` on ply nodes).
+        vmax: Upper end of the colour range (default: maximum of ``color`` on ply nodes).
+        cmap: Matplotlib colour map.
+        show_tools: Also draw the tools as transparent grey surfaces.
+        mirror: Mirror the quarter model about both symmetry planes (shows the full part).
+
+    Returns:
+        The last ``Poly3DCollection`` of the plies (for a colour bar).
+    """
+    import matplotlib as mpl
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    ply = node_type == NodeType.PLY
+    vmin = float(color[ply].min()) if vmin is None else vmin
+    vmax = float(color[ply].max()) if vmax is None else vmax
+    norm = mpl.colors.Normalize(vmin=vmin, vmax=vmax)
+    colormap = mpl.colormaps[cmap]
+    signs = [(1, 1), (-1, 1), (1, -1), (-1, -1)] if mirror else [(1, 1)]
+    last = None
+    for cells_c in cells:
+        is_ply = bool(ply[cells_c[0, 0]])
+        if not is_ply and not show_tools:
+            continue
+        for sx, sy in signs:
+            p = pos.clone()
+            p[:, 0] *= sx
+            p[:, 1] *= sy
+            verts = p[cells_c].numpy()
+            if is_ply:
+                face_val = color[cells_c].mean(1).numpy()
+                coll = Poly3DCollection(
+                    verts, facecolors=colormap(norm(face_val)), edgecolors="none", linewidths=0
+                )
+                last = coll
+            else:
+                coll = Poly3DCollection(
+                    verts, facecolors=(0.6, 0.6, 0.6, 0.08), edgecolors="none", linewidths=0
+                )
+            ax.add_collection3d(coll)
+    ext = pos.abs().max(0).values
+    lim = float(ext[:2].max())
+    ax.set_xlim(-lim if mirror else 0, lim)
+    ax.set_ylim(-lim if mirror else 0, lim)
+    ax.set_zlim(float(pos[:, 2].min()), float(pos[:, 2].max()))
+    ax.set_box_aspect((1, 1, 0.45))
+    ax.set_xlabel("e1 [mm]")
+    ax.set_ylabel("e2 [mm]")
+    ax.set_zlabel("e3 [mm]")
+    if last is not None:
+        last.set_cmap(colormap)
+        last.set_norm(norm)
+        last.set_array(torch.zeros(1).numpy())
+    return last
