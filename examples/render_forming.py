@@ -2,9 +2,9 @@
 
     python examples/render_forming.py --out outputs [--seed 0] [--paper]
 
-Writes ``forming_seed<S>.png`` (the plies at 70 % and 100 % of the process, mirrored to the
-full double-dome part, coloured by e3 displacement) and ``forming_seed<S>.pt`` (the
-trajectory).
+Writes ``forming_seed<S>.png`` (the bottom ply at 70 % and 100 % of the process, seen
+from below, mirrored to the full double-dome part, coloured by e3 displacement) and
+``forming_seed<S>.pt`` (the trajectory).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def main() -> None:
             ax, traj.pos[step], traj.cells, traj.node_type, u3[step], vmin, 0.0, show_tools=False
         )
         ax.view_init(elev=28, azim=-62)
-        ax.set_title(f"{int(frac * 100)} % of the process (step {step})")
+        ax.set_title(f"{int(frac * 100)} % of the process (step {step}), bottom ply from below")
     fig.colorbar(last, ax=fig.axes, shrink=0.6, label="e3 displacement [mm]")
     fig.suptitle(f"Embedded stamp-forming simulator: [0/45/90/-45] laminate, seed {args.seed}")
     args.out.mkdir(parents=True, exist_ok=True)

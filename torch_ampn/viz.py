@@ -21,6 +21,7 @@ def plot_laminate(
     cmap: str = "jet",
     show_tools: bool = True,
     mirror: bool = True,
+    components: list[int] | None = None,
 ) -> Any:
     """Draw the plies (coloured by ``color`` per node) and, faintly, the tools on a 3-D axis.
 
@@ -35,6 +36,7 @@ def plot_laminate(
         cmap: Matplotlib colour map.
         show_tools: Also draw the tools as transparent grey surfaces.
         mirror: Mirror the quarter model about both symmetry planes (shows the full part).
+        components: Ply components to draw (default: all plies).
 
     Returns:
         The last ``Poly3DCollection`` of the plies (for a colour bar).
@@ -48,27 +50,27 @@ def plot_laminate(
     norm = mpl.colors.Normalize(vmin=vmin, vmax=vmax)
     colormap = mpl.colormaps[cmap]
     signs = [(1, 1), (-1, 1), (1, -1), (-1, -1)] if mirror else [(1, 1)]
-    last = None
-    for cells_c in cells:
+    ply_verts, ply_vals, tool_verts = [], [], []
+    for c, cells_c in enumerate(cells):
         is_ply = bool(ply[cells_c[0, 0]])
-        if not is_ply and not show_tools:
+        if (is_ply and components is not None and c not in components) or (not is_ply and not show_tools):
             continue
         for sx, sy in signs:
-            p = pos.clone()
-            p[:, 0] *= sx
-            p[:, 1] *= sy
-            verts = p[cells_c].numpy()
+            p = pos * torch.tensor([sx, sy, 1.0], dtype=pos.dtype)
             if is_ply:
-                face_val = color[cells_c].mean(1).numpy()
-                coll = Poly3DCollection(
-                    verts, facecolors=colormap(norm(face_val)), edgecolors="none", linewidths=0
-                )
-                last = coll
+                ply_verts.extend(p[cells_c].numpy())
+                ply_vals.append(color[cells_c].mean(1))
             else:
-                coll = Poly3DCollection(
-                    verts, facecolors=(0.6, 0.6, 0.6, 0.08), edgecolors="none", linewidths=0
-                )
-            ax.add_collection3d(coll)
+                tool_verts.extend(p[cells_c].numpy())
+    # one collection per kind, so that matplotlib depth-sorts all faces of the plies together
+    last = None
+    if tool_verts:
+        ax.add_collection3d(Poly3DCollection(tool_verts, facecolors=(0.6, 0.6, 0.6, 0.08), edgecolors="none"))
+    if ply_verts:
+        values = torch.cat(ply_vals).numpy()
+        last = Poly3DCollection(ply_verts, cmap=colormap, norm=norm, edgecolors="none")
+        last.set_array(values)  # colours follow the values (and a colour bar can use them)
+        ax.add_collection3d(last)
     ext = pos.abs().max(0).values
     lim = float(ext[:2].max())
     ax.set_xlim(-lim if mirror else 0, lim)
@@ -78,8 +80,4 @@ def plot_laminate(
     ax.set_xlabel("e1 [mm]")
     ax.set_ylabel("e2 [mm]")
     ax.set_zlabel("e3 [mm]")
-    if last is not None:
-        last.set_cmap(colormap)
-        last.set_norm(norm)
-        last.set_array(torch.zeros(1).numpy())
     return last
