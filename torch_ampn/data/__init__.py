@@ -1,5 +1,6 @@
 """Graph data: the AMG hierarchy, ``HierarchicalData`` and mesh builders."""
 
+from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
 from torch_ampn.data.hierarchy import build_hierarchy, mesh_operator
 from torch_ampn.data.mesh import (
@@ -15,9 +16,12 @@ from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 
 __all__ = [
     "HierarchicalData",
+    "HierarchyCache",
     "MultiComponentMesh",
     "NodeType",
+    "StepDataset",
     "Trajectory",
+    "TrajectoryDataset",
     "TrajectoryFormatError",
     "build_hierarchy",
     "cells_to_edge_index",
@@ -29,4 +33,5 @@ __all__ = [
     "read_time_series",
     "rectangle_mesh",
     "stacked_plates",
+    "step_sample",
 ]

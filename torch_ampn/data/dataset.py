@@ -1,0 +1,167 @@
+"""Datasets: whole trajectories of a split, and (t-1, t) training windows as ``HierarchicalData``."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+
+from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.hierarchy import build_hierarchy
+from torch_ampn.data.node_type import NodeType
+from torch_ampn.data.trajectory import Trajectory
+
+SPLITS = ("train", "val", "test")
+
+
+def split_files(root: str | os.PathLike, split: str) -> list[Path]:
+    """Trajectory files of ``split`` (``<root>/<split>/*.pt``, sorted by name)."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return sorted((Path(root) / split).glob("*.pt"))
+
+
+class TrajectoryDataset:
+    """The trajectories of one split, loaded (and validated) on first access and kept in memory.
+
+    Args:
+        root: Dataset folder with ``train/``, ``val/``, ``test/`` sub-folders.
+        split: ``"train"``, ``"val"`` or ``"test"``.
+    """
+
+    def __init__(self, root: str | os.PathLike, split: str) -> None:
+        self.root, self.split = Path(root), split
+        self.files = split_files(root, split)
+        if not self.files:
+            raise FileNotFoundError(f"{self.root / split}: no trajectory files (*.pt)")
+        self._cache: dict[int, Trajectory] = {}
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, i: int) -> Trajectory:
+        if i not in self._cache:
+            self._cache[i] = Trajectory.load(self.files[i])
+        return self._cache[i]
+
+    def __iter__(self) -> Iterator[Trajectory]:
+        return (self[i] for i in range(len(self)))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.root}, split={self.split!r}, trajectories={len(self)})"
+
+
+def topology_key(traj: Trajectory) -> str:
+    """Hash of a trajectory's mesh topology (cells and node count)."""
+    h = hashlib.sha256(str(traj.num_nodes).encode())
+    for cells in traj.cells:
+        h.update(cells.numpy().tobytes())
+    return h.hexdigest()
+
+
+class HierarchyCache:
+    """One AMG hierarchy per mesh topology, in memory and (optionally) on disk.
+
+    Coarse levels also get ``node_type`` and ``component`` of their root nodes.
+    """
+
+    def __init__(self, cache_dir: str | os.PathLike | None = None, **hierarchy_kwargs) -> None:
+        self.cache_dir = cache_dir
+        self.kwargs = hierarchy_kwargs
+        self._memory: dict[str, HierarchicalData] = {}
+
+    def __call__(self, traj: Trajectory) -> HierarchicalData:
+        """The hierarchy of ``traj``'s mesh (shared; copy it before adding fields)."""
+        key = topology_key(traj)
+        if key not in self._memory:
+            h = build_hierarchy(traj.edge_index(), traj.num_nodes, cache_dir=self.cache_dir, **self.kwargs)
+            for k in range(h.num_levels):
+                idx = h.fine_index(k)
+                h[level_name(k)].node_type = traj.node_type[idx]
+                h[level_name(k)].component = traj.component[idx]
+            self._memory[key] = h
+        return self._memory[key]
+
+
+def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> HierarchicalData:
+    r"""The training window ``(t-1, t)`` of ``traj`` on ``hierarchy`` (which is not modified).
+
+    Fine level (``l0``) fields, ``N`` nodes:
+
+    * ``pos0`` ``[N, 3]``: initial positions; ``pos`` ``[N, 3]``: positions :math:`x^{t-1}`;
+    * ``prev_disp`` ``[N, 3]``: previous residual :math:`x^{t-1} - x^{t-2}` (zero at ``t = 1``);
+    * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies;
+    * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}`;
+    * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level.
+
+    Graph level: ``gripper_pos`` and ``gripper_force`` ``[1, G, 3]`` at :math:`t-1`,
+    ``step`` ``[1]`` (= t) and ``traj_index`` is left to the caller.
+    """
+    if not 1 <= t <= traj.num_steps:
+        raise IndexError(f"step {t} out of range 1..{traj.num_steps}")
+    data = copy.copy(hierarchy)
+    x_prev, x_next = traj.pos[t - 1], traj.pos[t]
+    ply = traj.node_type == NodeType.PLY
+    l0 = data["l0"]
+    l0.pos0 = traj.pos[0]
+    l0.pos = x_prev
+    l0.prev_disp = x_prev - traj.pos[t - 2] if t >= 2 else torch.zeros_like(x_prev)
+    l0.bc_disp = torch.where(ply[:, None], torch.zeros_like(x_prev), x_next - x_prev)
+    l0.target = x_next - x_prev
+    l0.fiber = traj.fiber
+    l0.ply_mask = ply
+    data.gripper_pos = traj.gripper_positions()[t - 1][None]
+    data.gripper_force = traj.gripper_force_vectors()[t - 1][None]
+    data.step = torch.tensor([t])
+    return data
+
+
+class StepDataset(torch.utils.data.Dataset):
+    """All ``(t-1, t)`` windows of a split as :class:`HierarchicalData` samples (see :func:`step_sample`).
+
+    Sample ``i`` is trajectory ``i // T`` at step ``i % T + 1``. Batches with PyG's
+    ``DataLoader``. The hierarchy is built once per mesh topology and cached (in memory and,
+    with ``cache_dir``, on disk).
+
+    Args:
+        root: Dataset folder.
+        split: ``"train"``, ``"val"`` or ``"test"``.
+        cache_dir: Folder for hierarchy files (default ``<root>/cache``; ``None`` disables disk caching).
+        max_levels: Passed to :func:`build_hierarchy`.
+        min_coarse_nodes: Passed to :func:`build_hierarchy`.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str = "train",
+        cache_dir: str | os.PathLike | None = "default",
+        max_levels: int = 4,
+        min_coarse_nodes: int = 16,
+    ) -> None:
+        self.trajectories = TrajectoryDataset(root, split)
+        cache = Path(root) / "cache" if cache_dir == "default" else cache_dir
+        self.hierarchies = HierarchyCache(cache, max_levels=max_levels, min_coarse_nodes=min_coarse_nodes)
+        self.steps = [self.trajectories[i].num_steps for i in range(len(self.trajectories))]
+        self.offsets = torch.tensor([0, *self.steps]).cumsum(0)
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def index(self, i: int) -> tuple[int, int]:
+        """``(trajectory index, step t)`` of sample ``i``."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"sample {i} out of range for {len(self)} samples")
+        j = int(torch.searchsorted(self.offsets, torch.tensor(i), right=True)) - 1
+        return j, i - int(self.offsets[j]) + 1
+
+    def __getitem__(self, i: int) -> HierarchicalData:
+        j, t = self.index(i)
+        traj = self.trajectories[j]
+        data = step_sample(traj, t, self.hierarchies(traj))
+        data.traj_index = torch.tensor([j])
+        return data
