@@ -1,0 +1,40 @@
+"""Neural network layers and models: IntraLevelConv, InterLevelConv, AMPN and its ROBIN (diffusion) mode."""
+
+from torch_ampn.nn.ampn import AMPN
+from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule
+from torch_ampn.nn.encoding import FourierLevelEncoding
+from torch_ampn.nn.features import (
+    coarse_node_features,
+    edge_features,
+    fine_node_features,
+    gripper_features,
+    hierarchical_features,
+    node_type_one_hot,
+    num_coarse_node_features,
+    num_edge_features,
+    num_fine_node_features,
+)
+from torch_ampn.nn.inter_level_conv import InterLevelConv
+from torch_ampn.nn.intra_level_conv import IntraLevelConv
+from torch_ampn.nn.mlp import MLP
+from torch_ampn.nn.normalizer import Normalizer
+
+__all__ = [
+    "AMPN",
+    "DiffusionAMPN",
+    "FourierLevelEncoding",
+    "InterLevelConv",
+    "IntraLevelConv",
+    "MLP",
+    "Normalizer",
+    "coarse_node_features",
+    "edge_features",
+    "fine_node_features",
+    "geometric_beta_schedule",
+    "gripper_features",
+    "hierarchical_features",
+    "node_type_one_hot",
+    "num_coarse_node_features",
+    "num_edge_features",
+    "num_fine_node_features",
+]

@@ -1,0 +1,288 @@
+r"""Input features of an AMPN (seed paper, "Feature and encoder"), from plain tensors or a hierarchy.
+
+Every function works on batched graphs: node tensors are concatenated over the graphs of a
+batch and graph-level tensors (gripper positions and forces, ``[B, G, 3]``) are picked per
+node with the node-level ``batch`` vector.
+
+Feature layout (columns, in this order):
+
+* fine (``l0``) nodes, :func:`fine_node_features`: node-type one-hot (``NodeType.count()``),
+  previous residual :math:`\Delta u^{t-1}` (3), prescribed tool motion
+  :math:`\Delta u^t_{BC}` (3, zero on plies), fiber direction (3: a unit vector in the
+  initial configuration, zero on tools), component one-hot (``num_components``), and the
+  gripper features of :func:`gripper_features` (``7 G + 7``). The N(0, 1) noise input (the
+  noisy target in ROBIN mode) is *not* part of these columns: :class:`~torch_ampn.nn.AMPN`
+  takes it as its own argument and appends it, so that a denoiser can change it per step.
+* coarse (``l1 .. lL``) nodes, :func:`coarse_node_features`: node-type one-hot only.
+* edges, :func:`edge_features`: :math:`x_i - x_j` (3) and its norm (1) on every edge set,
+  plus :math:`x^0_i - x^0_j` (3) and its norm (1) on mesh, down and up edges; ``i`` is the
+  target and ``j`` the source of the edge.
+
+The level encoding is added inside the model, and normalisation is a separate step
+(:class:`~torch_ampn.nn.Normalizer`).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.node_type import NodeType
+
+#: Gripper features per node and gripper: d_ij (3), |d_ij| (1), d_ij / (|d_ij| + eps) (3).
+GRIPPER_FEATURES_PER_GRIPPER = 7
+#: Gripper features per node summed over grippers: f^proj-weighted (3), f^weighted (3), |f^weighted| (1).
+GRIPPER_FEATURES_SUMMED = 7
+#: Edge features without (contact) and with (mesh, down, up) the initial relative position.
+EDGE_FEATURES_CURRENT = 4
+EDGE_FEATURES_WITH_INITIAL = 8
+#: Edge relations that carry the initial relative position.
+RELATIONS_WITH_INITIAL = ("mesh", "down", "up")
+
+
+def num_fine_node_features(num_components: int, num_grippers: int, fiber_channels: int = 3) -> int:
+    """Number of columns of :func:`fine_node_features` (without the noise input)."""
+    return (
+        NodeType.count()
+        + 3  # previous residual
+        + 3  # prescribed tool motion
+        + fiber_channels
+        + num_components
+        + GRIPPER_FEATURES_PER_GRIPPER * num_grippers
+        + GRIPPER_FEATURES_SUMMED
+    )
+
+
+def num_coarse_node_features() -> int:
+    """Number of columns of :func:`coarse_node_features`."""
+    return NodeType.count()
+
+
+def num_edge_features(relation: str) -> int:
+    """Number of columns of :func:`edge_features` for an edge relation (``"mesh"``, ``"contact"``, ...)."""
+    return EDGE_FEATURES_WITH_INITIAL if relation in RELATIONS_WITH_INITIAL else EDGE_FEATURES_CURRENT
+
+
+def node_type_one_hot(node_type: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+    """One-hot node type: ``LongTensor[N] -> [N, NodeType.count()]``."""
+    return F.one_hot(node_type.long(), NodeType.count()).to(dtype)
+
+
+def _per_node(graph_tensor: Tensor, batch: Tensor | None, num_nodes: int) -> Tensor:
+    """``[G, 3]`` or ``[B, G, 3]`` graph-level tensor -> ``[N, G, 3]`` (row ``batch[i]`` for node ``i``)."""
+    if graph_tensor.dim() == 2:
+        graph_tensor = graph_tensor.unsqueeze(0)  # [1, G, 3]
+    if batch is None:
+        if graph_tensor.size(0) != 1:
+            raise ValueError(
+                f"gripper tensors hold {graph_tensor.size(0)} graphs; pass the node `batch` vector"
+            )
+        return graph_tensor.expand(num_nodes, -1, -1)
+    return graph_tensor[batch]
+
+
+def gripper_features(
+    pos: Tensor,
+    gripper_pos: Tensor,
+    gripper_force: Tensor,
+    batch: Tensor | None = None,
+    alpha: float = 3e-2,
+    eps: float = 1e-8,
+) -> Tensor:
+    r"""Gripper features of every node (seed paper, "Feature and encoder").
+
+    For node position :math:`\mathbf{x}_i`, gripper positions :math:`\mathbf{g}_j` and
+    forces :math:`\mathbf{f}_j`: :math:`\mathbf{d}_{ij} = \mathbf{x}_i - \mathbf{g}_j`,
+    :math:`d_{ij} = \|\mathbf{d}_{ij}\|`,
+    :math:`\hat{\mathbf{d}}_{ij} = \mathbf{d}_{ij} / (d_{ij} + \epsilon)`,
+
+    .. math::
+        \mathbf{f}^{proj}_i = \sum_j \frac{(\mathbf{f}_j \cdot \hat{\mathbf{d}}_{ij})\,
+        \hat{\mathbf{d}}_{ij}}{\exp(\alpha d_{ij} + \epsilon)}, \qquad
+        \mathbf{f}^{w}_i = \sum_j \frac{\mathbf{f}_j}{\exp(\alpha d_{ij} + \epsilon)}.
+
+    Args:
+        pos: Current node positions ``[N, 3]``.
+        gripper_pos: Gripper positions ``[G, 3]`` (one graph) or ``[B, G, 3]``.
+        gripper_force: Gripper force vectors, same shape as ``gripper_pos``.
+        batch: Graph of every node ``LongTensor[N]`` (needed when ``B > 1``).
+        alpha: Decay rate :math:`\alpha` of the distance weighting (per length unit).
+        eps: :math:`\epsilon`.
+
+    Returns:
+        ``[N, 7 G + 7]``: per gripper ``j`` (gripper-major) the columns
+        :math:`[\mathbf{d}_{ij}, d_{ij}, \hat{\mathbf{d}}_{ij}]`, then
+        :math:`[\mathbf{f}^{proj}_i, \mathbf{f}^{w}_i, \|\mathbf{f}^{w}_i\|]`.
+    """
+    n = pos.size(0)
+    g = _per_node(gripper_pos.to(pos.dtype), batch, n)  # [N, G, 3]
+    f = _per_node(gripper_force.to(pos.dtype), batch, n)  # [N, G, 3]
+    d = pos.unsqueeze(1) - g  # [N, G, 3]
+    dist = d.norm(dim=-1, keepdim=True)  # [N, G, 1]
+    d_hat = d / (dist + eps)  # [N, G, 3]
+    weight = torch.exp(-(alpha * dist + eps))  # [N, G, 1] = 1 / exp(alpha d + eps)
+    f_proj = ((f * d_hat).sum(-1, keepdim=True) * d_hat * weight).sum(1)  # [N, 3]
+    f_weighted = (f * weight).sum(1)  # [N, 3]
+    per_gripper = torch.cat([d, dist, d_hat], dim=-1).reshape(n, -1)  # [N, 7G]
+    return torch.cat([per_gripper, f_proj, f_weighted, f_weighted.norm(dim=-1, keepdim=True)], dim=-1)
+
+
+def fine_node_features(
+    node_type: Tensor,
+    prev_disp: Tensor,
+    bc_disp: Tensor,
+    fiber: Tensor,
+    component: Tensor,
+    num_components: int,
+    pos: Tensor,
+    gripper_pos: Tensor,
+    gripper_force: Tensor,
+    batch: Tensor | None = None,
+    alpha: float = 3e-2,
+    eps: float = 1e-8,
+) -> Tensor:
+    r"""Features of the fine (``l0``) nodes, without the noise input.
+
+    Args:
+        node_type: :class:`~torch_ampn.data.NodeType` of every node, ``LongTensor[N]``.
+        prev_disp: Previous residual :math:`\Delta u^{t-1}`, ``[N, 3]``.
+        bc_disp: Prescribed tool motion :math:`\Delta u^t_{BC}` of this step, ``[N, 3]`` (zero on plies).
+        fiber: Fiber direction ``[N, 3]`` (unit vector, zero on tools); any width ``[N, F]`` is accepted.
+        component: Component id ``LongTensor[N]`` in ``0 .. num_components - 1``.
+        num_components: Number of components ``C`` (width of the component one-hot).
+        pos: Current positions ``[N, 3]``.
+        gripper_pos: Gripper positions ``[G, 3]`` or ``[B, G, 3]``.
+        gripper_force: Gripper forces, same shape as ``gripper_pos``.
+        batch: Graph of every node ``LongTensor[N]`` (batched data).
+        alpha: See :func:`gripper_features`.
+        eps: See :func:`gripper_features`.
+
+    Returns:
+        ``[N, num_fine_node_features(C, G, F)]`` in the column order of the module docstring.
+    """
+    dtype = pos.dtype
+    return torch.cat(
+        [
+            node_type_one_hot(node_type, dtype),
+            prev_disp.to(dtype),
+            bc_disp.to(dtype),
+            fiber.to(dtype),
+            F.one_hot(component.long(), num_components).to(dtype),
+            gripper_features(pos, gripper_pos, gripper_force, batch, alpha, eps),
+        ],
+        dim=-1,
+    )
+
+
+def coarse_node_features(node_type: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+    """Features of coarse (``l1 .. lL``) nodes: the node-type one-hot, ``[N_l, NodeType.count()]``."""
+    return node_type_one_hot(node_type, dtype)
+
+
+def edge_features(
+    edge_index: Tensor,
+    pos_src: Tensor,
+    pos_dst: Tensor,
+    pos0_src: Tensor | None = None,
+    pos0_dst: Tensor | None = None,
+) -> Tensor:
+    """Relative-position features of edges ``(source j, target i)``.
+
+    Args:
+        edge_index: ``LongTensor[2, E]``, rows ``(source j, target i)``.
+        pos_src: Current positions of the source node set ``[N_s, 3]``.
+        pos_dst: Current positions of the target node set ``[N_t, 3]`` (the same tensor
+            as ``pos_src`` for edges within one level).
+        pos0_src: Initial positions of the sources ``[N_s, 3]``, or ``None``.
+        pos0_dst: Initial positions of the targets ``[N_t, 3]``, or ``None``.
+
+    Returns:
+        ``[E, 4]`` = ``[x_i - x_j, |x_i - x_j|]``, or ``[E, 8]`` with
+        ``[x0_i - x0_j, |x0_i - x0_j|]`` appended when initial positions are given.
+    """
+    src, dst = edge_index[0], edge_index[1]
+    rel = pos_dst[dst] - pos_src[src]  # [E, 3]
+    parts = [rel, rel.norm(dim=-1, keepdim=True)]
+    if pos0_src is not None and pos0_dst is not None:
+        rel0 = pos0_dst[dst] - pos0_src[src]  # [E, 3]
+        parts += [rel0, rel0.norm(dim=-1, keepdim=True)]
+    return torch.cat(parts, dim=-1)
+
+
+def hierarchical_features(
+    data: HierarchicalData,
+    num_components: int,
+    num_levels: int | None = None,
+    alpha: float = 3e-2,
+    eps: float = 1e-8,
+) -> tuple[dict[str, Tensor], dict[tuple[str, str, str], Tensor]]:
+    """All node and edge features of a (batched) :class:`~torch_ampn.data.HierarchicalData`.
+
+    Reads ``data["l0"]``'s ``pos0``, ``pos``, ``prev_disp``, ``bc_disp``, ``node_type``,
+    ``component``, ``fiber`` (and ``batch`` when batched) and the graph-level
+    ``data.gripper_pos`` / ``data.gripper_force`` (``[B, G, 3]``; ``[1, G, 3]`` per graph
+    batches to that). Coarse nodes take position and node type from their root fine node
+    (``data.fine_index(k)``). A missing contact edge set counts as empty.
+
+    Args:
+        data: The hierarchy (or a batch of hierarchies).
+        num_components: Width of the component one-hot.
+        num_levels: Use levels ``0 .. num_levels - 1`` only (default: all).
+        alpha: See :func:`gripper_features`.
+        eps: See :func:`gripper_features`.
+
+    Returns:
+        ``(x_dict, edge_attr_dict)``: ``x_dict["lk"]`` node features and
+        ``edge_attr_dict[(src, rel, dst)]`` edge features of every edge set of the used
+        levels, keyed like ``data.edge_index_dict``; ready for :class:`~torch_ampn.nn.AMPN`
+        after normalisation.
+    """
+    num_levels = data.num_levels if num_levels is None else num_levels
+    fine = data["l0"]
+    pos, pos0 = fine.pos, fine.pos0
+    batch = fine.batch if "batch" in fine else None
+    x_dict = {
+        "l0": fine_node_features(
+            fine.node_type,
+            fine.prev_disp,
+            fine.bc_disp,
+            fine.fiber,
+            fine.component,
+            num_components,
+            pos,
+            data.gripper_pos,
+            data.gripper_force,
+            batch,
+            alpha,
+            eps,
+        )
+    }
+    pos_l, pos0_l = [pos], [pos0]
+    for k in range(1, num_levels):
+        idx = data.fine_index(k)  # [N_k]
+        pos_l.append(pos[idx])
+        pos0_l.append(pos0[idx])
+        x_dict[level_name(k)] = coarse_node_features(fine.node_type[idx], pos.dtype)
+
+    edge_attr_dict: dict[tuple[str, str, str], Tensor] = {}
+    for k in range(num_levels):
+        lk = level_name(k)
+        for rel in ("mesh", "contact"):
+            key = (lk, rel, lk)
+            if key in data.edge_types:
+                ei = data[key].edge_index
+            else:
+                ei = torch.empty(2, 0, dtype=torch.long, device=pos.device)
+            initial = (pos0_l[k], pos0_l[k]) if rel == "mesh" else (None, None)
+            edge_attr_dict[key] = edge_features(ei, pos_l[k], pos_l[k], *initial)
+        if k + 1 < num_levels:
+            lc = level_name(k + 1)
+            edge_attr_dict[(lk, "down", lc)] = edge_features(
+                data[lk, "down", lc].edge_index, pos_l[k], pos_l[k + 1], pos0_l[k], pos0_l[k + 1]
+            )
+            edge_attr_dict[(lc, "up", lk)] = edge_features(
+                data[lc, "up", lk].edge_index, pos_l[k + 1], pos_l[k], pos0_l[k + 1], pos0_l[k]
+            )
+    return x_dict, edge_attr_dict
