@@ -41,6 +41,13 @@ def main() -> None:
         torch.set_num_threads(args.threads)
 
     rows = []
+    meta = dict(
+        benchmark="simulate",
+        machine=platform.machine(),
+        threads=torch.get_num_threads(),
+        torch=torch.__version__,
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     for res in args.resolutions:
         cfg = StampFormingConfig.paper() if res == "paper" else StampFormingConfig()
         for batch in args.batch:
@@ -61,6 +68,7 @@ def main() -> None:
                     first_run_seconds_per_trajectory=None if first is None else first / batch,
                 )
                 rows.append(row)
+                args.out.write_text(json.dumps(dict(meta=meta, results=rows), indent=2))  # after every row
                 print(
                     f"{res:>6} {nodes:>6} nodes  batch {batch}  {mode:>8}: {seconds / batch:7.2f} s/traj."
                     f"  ({substeps} sub-steps per saved step"
