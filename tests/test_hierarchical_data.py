@@ -137,3 +137,17 @@ def test_save_and_load_round_trip(tmp_path, how):
         assert torch.equal(back.mesh(k).edge_index, h.mesh(k).edge_index)
     assert torch.equal(back["l0"].pos, h["l0"].pos)
     assert torch.equal(back.down(0).edge_weight, h.down(0).edge_weight)
+
+
+def test_fixed_size_contact_table_is_offset_when_batched():
+    h1, h2 = _hierarchy(seed=1), _hierarchy(14, 12, 3, seed=2)
+    for h in (h1, h2):
+        for k in range(h.num_levels):
+            n = h.level(k).num_nodes
+            h[f"l{k}"].contact_nbr = torch.arange(n).repeat_interleave(3).view(n, 3).flip(0)
+    b = Batch.from_data_list([h1, h2])
+    for k in range(3):
+        n1 = h1.level(k).num_nodes
+        assert torch.equal(
+            b[f"l{k}"].contact_nbr, torch.cat([h1[f"l{k}"].contact_nbr, h2[f"l{k}"].contact_nbr + n1])
+        )

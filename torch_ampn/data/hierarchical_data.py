@@ -34,7 +34,8 @@ class HierarchicalData(HeteroData):
     * ``("lk+1", "up", "lk")``: the same edges reversed (non-zeros of :math:`R_k = P_k^\top`).
 
     Level ``k >= 1`` stores ``root`` (``LongTensor[N_k]``): the level ``k-1`` node that each
-    coarse node stands for (root-node aggregation), offset correctly when batched.
+    coarse node stands for (root-node aggregation), offset correctly when batched, as is
+    the optional fixed-size contact table ``contact_nbr`` (indices into its own level).
     Positions, component ids and node types of coarse nodes are those of their roots
     (see :meth:`fine_index`).
 
@@ -118,6 +119,8 @@ class HierarchicalData(HeteroData):
             m = _LEVEL_RE.match(store._key)
             if m is not None and int(m.group(1)) > 0:
                 return self[level_name(int(m.group(1)) - 1)].num_nodes
+        if key == "contact_nbr" and isinstance(store, NodeStorage):
+            return store.num_nodes  # fixed-size contact table: indices into its own level
         return super().__inc__(key, value, store, *args, **kwargs)
 
     # ---- files -----------------------------------------------------------------------
