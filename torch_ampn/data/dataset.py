@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
@@ -133,6 +133,7 @@ class StepDataset(torch.utils.data.Dataset):
         cache_dir: Folder for hierarchy files (default ``<root>/cache``; ``None`` disables disk caching).
         max_levels: Passed to :func:`build_hierarchy`.
         min_coarse_nodes: Passed to :func:`build_hierarchy`.
+        transform: Applied to every sample (e.g. :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
     """
 
     def __init__(
@@ -142,7 +143,9 @@ class StepDataset(torch.utils.data.Dataset):
         cache_dir: str | os.PathLike | None = "default",
         max_levels: int = 4,
         min_coarse_nodes: int = 16,
+        transform: Callable[[HierarchicalData], HierarchicalData] | None = None,
     ) -> None:
+        self.transform = transform
         self.trajectories = TrajectoryDataset(root, split)
         cache = Path(root) / "cache" if cache_dir == "default" else cache_dir
         self.hierarchies = HierarchyCache(cache, max_levels=max_levels, min_coarse_nodes=min_coarse_nodes)
@@ -164,4 +167,4 @@ class StepDataset(torch.utils.data.Dataset):
         traj = self.trajectories[j]
         data = step_sample(traj, t, self.hierarchies(traj))
         data.traj_index = torch.tensor([j])
-        return data
+        return data if self.transform is None else self.transform(data)

@@ -110,6 +110,13 @@ class Trajectory:
         d = self.gripper_anchor[None] - self.gripper_positions()
         return self.gripper_force[None, :, None] * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
+    def to(self, device: torch.device | str) -> Trajectory:
+        """A copy with every tensor on ``device`` (shares storage where it is already there)."""
+        moved = {f: getattr(self, f) for f in _FIELDS}
+        moved = {f: v.to(device) if isinstance(v, Tensor) else v for f, v in moved.items()}
+        moved["cells"] = [c.to(device) for c in self.cells]
+        return Trajectory(**moved, meta=dict(self.meta))
+
     # ---- files -----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """The file representation (see the module docstring)."""

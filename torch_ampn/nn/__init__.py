@@ -18,9 +18,11 @@ from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.mlp import MLP
 from torch_ampn.nn.normalizer import Normalizer
+from torch_ampn.nn.surrogate import AMPNSurrogate
 
 __all__ = [
     "AMPN",
+    "AMPNSurrogate",
     "DiffusionAMPN",
     "FourierLevelEncoding",
     "InterLevelConv",

@@ -1,6 +1,6 @@
 """The embedded quarter double-dome stamp-forming simulator that makes the default dataset."""
 
 from torch_ampn.sim.config import StampFormingConfig
-from torch_ampn.sim.simulate import build_mesh, simulate, simulate_batch
+from torch_ampn.sim.simulate import build_mesh, process_trajectory, simulate, simulate_batch
 
-__all__ = ["StampFormingConfig", "build_mesh", "simulate", "simulate_batch"]
+__all__ = ["StampFormingConfig", "build_mesh", "process_trajectory", "simulate", "simulate_batch"]

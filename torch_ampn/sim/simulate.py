@@ -273,6 +273,94 @@ class LaminateModel:
         return torch.compile(step, dynamic=False) if compile else step
 
 
+def _tool_motion(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int) -> tuple[Tensor, Tensor]:
+    """Saved times ``[T+1]`` and tool positions ``[T+1, N - n, 3]``: the punch moves, the die stays."""
+    punch = mesh.component == cfg.num_plies
+    punch_xy = mesh.pos[punch, :2]
+    times = torch.linspace(0.0, cfg.duration, cfg.num_steps + 1, dtype=torch.float64)
+    tool_frames = mesh.pos[n:].expand(cfg.num_steps + 1, -1, -1).clone()
+    for i, t in enumerate(times):
+        tool_frames[i, punch[n:], 2] = punch_surface(punch_xy, float(punch_travel(float(t), cfg)), cfg)[0]
+    return times, tool_frames
+
+
+def _fiber_directions(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int) -> Tensor:
+    """Unit fibre direction of every node ``[N, 3]`` (zero on the tools)."""
+    fiber = torch.zeros(mesh.num_nodes, 3, dtype=torch.float64)
+    angle = torch.tensor(
+        [math.radians(cfg.ply_angles[c]) for c in mesh.component[:n].tolist()], dtype=torch.float64
+    )
+    fiber[:n, 0], fiber[:n, 1] = torch.cos(angle), torch.sin(angle)
+    return fiber
+
+
+def process_trajectory(
+    config: StampFormingConfig | None = None,
+    gripper_positions: Sequence[float] | Tensor | None = None,
+    gripper_forces: Sequence[float] | Tensor | None = None,
+    seed: int | None = None,
+) -> Trajectory:
+    """A trajectory of a process setting *without* solving it: tools on their prescribed path, plies at rest.
+
+    This is the input of a surrogate rollout for new process settings (``torch-ampn predict``):
+    the initial state, the mesh, the gripper layout and the tool motion are exact; the ply
+    positions after step 0 are placeholders (equal to the initial state), and
+    ``meta["ground_truth"]`` is ``False``.
+
+    Args:
+        config: Simulator settings (default: the coarse default).
+        gripper_positions: Position of each gripper along its free edge as a fraction in
+            ``[0, 1]``, ``[G]``.
+        gripper_forces: Pulling force of each gripper in N, ``[G]``.
+        seed: Instead of explicit settings, sample them as :func:`simulate` does for ``seed``.
+    """
+    cfg = config or StampFormingConfig()
+    cfg.validate()
+    if seed is not None:
+        if gripper_positions is not None or gripper_forces is not None:
+            raise ValueError("give either a seed or explicit gripper positions and forces, not both")
+        where, force = sample_process(cfg, seed)
+    else:
+        if gripper_positions is None or gripper_forces is None:
+            raise ValueError("process_trajectory needs gripper_positions and gripper_forces (or a seed)")
+        where = torch.as_tensor(gripper_positions, dtype=torch.float64).reshape(-1)
+        force = torch.as_tensor(gripper_forces, dtype=torch.float64).reshape(-1)
+        for name, value in (("gripper_positions", where), ("gripper_forces", force)):
+            if value.numel() != cfg.num_grippers:
+                raise ValueError(f"{name} needs {cfg.num_grippers} values, got {value.numel()}")
+            if not torch.isfinite(value).all():
+                raise ValueError(f"{name} must be finite, got {value.tolist()}")
+        if ((where < 0) | (where > 1)).any():
+            raise ValueError(f"gripper_positions are fractions of the edge in [0, 1], got {where.tolist()}")
+        if (force < 0).any():
+            raise ValueError(f"gripper_forces must be >= 0 N, got {force.tolist()}")
+    mesh = build_mesh(cfg)
+    n = int((mesh.node_type == NodeType.PLY).sum())
+    nodes, anchors = _gripper_layout(cfg, mesh.pos[:n], n // cfg.num_plies, where)
+    times, tool_frames = _tool_motion(cfg, mesh, n)
+    plies = mesh.pos[:n].expand(cfg.num_steps + 1, -1, -1)
+    meta = dict(
+        simulator="torch_ampn.sim",
+        ground_truth=False,
+        config=cfg.to_dict(),
+        gripper_edge_fraction=where.tolist(),
+        **({} if seed is None else {"seed": int(seed)}),
+    )
+    return Trajectory(
+        pos=torch.cat([plies, tool_frames], 1).float(),
+        time=times.float(),
+        cells=[c.clone() for c in mesh.cells],
+        component=mesh.component.clone(),
+        node_type=mesh.node_type.clone(),
+        fiber=_fiber_directions(cfg, mesh, n).float(),
+        names=list(mesh.names),
+        gripper_nodes=nodes,
+        gripper_anchor=anchors.float(),
+        gripper_force=force.float(),
+        meta=meta,
+    )
+
+
 def simulate_batch(
     config: StampFormingConfig | None = None,
     seeds: Sequence[int] = (0,),
@@ -305,9 +393,6 @@ def simulate_batch(
     model = LaminateModel(cfg, mesh, processes)
     step = model.step_function(compile)
     n, copies = model.n, model.copies
-    punch = mesh.component == cfg.num_plies
-    punch_xy = mesh.pos[punch, :2]
-
     x, v = model.x0.clone(), torch.zeros_like(model.x0)
     frames = [x.clone()]
     steps = range(1, cfg.num_steps + 1)
@@ -326,17 +411,8 @@ def simulate_batch(
         frames.append(x.clone())
     ply_frames = torch.stack(frames).view(cfg.num_steps + 1, copies, n, 3)
 
-    # Tools: the punch follows its prescribed motion, the die stays.
-    times = torch.linspace(0.0, cfg.duration, cfg.num_steps + 1, dtype=torch.float64)
-    tool_frames = mesh.pos[n:].expand(cfg.num_steps + 1, -1, -1).clone()
-    for i, t in enumerate(times):
-        tool_frames[i, punch[n:], 2] = punch_surface(punch_xy, float(punch_travel(float(t), cfg)), cfg)[0]
-
-    fiber = torch.zeros(mesh.num_nodes, 3, dtype=torch.float64)
-    angle = torch.tensor(
-        [math.radians(cfg.ply_angles[c]) for c in mesh.component[:n].tolist()], dtype=torch.float64
-    )
-    fiber[:n, 0], fiber[:n, 1] = torch.cos(angle), torch.sin(angle)
+    times, tool_frames = _tool_motion(cfg, mesh, n)
+    fiber = _fiber_directions(cfg, mesh, n)
     out = []
     for b, seed in enumerate(seeds):
         where, force = processes[b]

@@ -1,0 +1,149 @@
+"""Rollouts, the RMSE metric, the trivial baselines and process settings without ground truth."""
+
+import math
+
+import pytest
+import torch
+
+from torch_ampn.baselines import RigidWithPunch, static_plies
+from torch_ampn.data import HierarchyCache, NodeType, step_sample
+from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.nn import AMPNSurrogate
+from torch_ampn.rollout import rollout, rollout_rmse
+from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch
+
+SMALL = StampFormingConfig(ply_cells=5, punch_cells=(4, 4), die_cells=(4, 4), num_steps=6)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return simulate_batch(SMALL, seeds=[3, 4])
+
+
+@pytest.fixture(scope="module")
+def hierarchy(runs):
+    return HierarchyCache(None, max_levels=3, min_coarse_nodes=4)(runs[0])
+
+
+def test_rmse_matches_hand_computation():
+    true = torch.zeros(3, 2, 3)
+    pred = true.clone()
+    pred[1, 0] = torch.tensor([3.0, 0.0, 0.0])  # step 1: one node off by 3 along e1
+    pred[2, 1] = torch.tensor([1.0, 2.0, 2.0])  # step 2: the other node off by (1, 2, 2)
+    rmse = rollout_rmse(pred, true)
+    assert rmse[0] == 0
+    assert rmse[1] == pytest.approx(math.sqrt(9.0 / 6.0))
+    assert rmse[2] == pytest.approx(math.sqrt(9.0 / 6.0))
+    # with a mask only the selected node counts
+    masked = rollout_rmse(pred, true, torch.tensor([True, False]))
+    assert masked[1] == pytest.approx(math.sqrt(9.0 / 3.0)) and masked[2] == 0
+
+
+def test_oracle_rollout_reproduces_the_trajectory_and_its_windows(runs, hierarchy):
+    traj = runs[0]
+    seen = []
+
+    def oracle(data):
+        t = int(data.step)
+        expected = step_sample(traj, t, hierarchy)
+        seen.append(t)
+        # with exact predictions every input of a rollout window equals the ground-truth window
+        for name in ("pos", "prev_disp", "bc_disp"):
+            torch.testing.assert_close(data["l0"][name], expected["l0"][name], atol=1e-4, rtol=0)
+        torch.testing.assert_close(data.gripper_pos, expected.gripper_pos, atol=1e-4, rtol=0)
+        return traj.pos[t] - data["l0"].pos
+
+    pred = rollout(oracle, traj, hierarchy)
+    assert seen == list(range(1, traj.num_steps + 1))
+    torch.testing.assert_close(pred, traj.pos, atol=1e-4, rtol=0)
+
+
+def test_rollout_keeps_tools_on_their_prescribed_path(runs, hierarchy):
+    traj = runs[0]
+    surrogate = AMPNSurrogate(
+        hidden_channels=8,
+        num_levels=hierarchy.num_levels,
+        pre_layers=1,
+        down_layers=1,
+        solve_layers=1,
+        post_layers=1,
+        up_layers=1,
+    )
+    generator = torch.Generator().manual_seed(0)
+    pred = rollout(lambda d: surrogate.predict_residual(d, generator), traj, hierarchy, surrogate.contact)
+    tools = traj.node_type != NodeType.PLY
+    assert torch.equal(pred[:, tools], traj.pos[:, tools])  # exactly, not approximately
+    assert (pred[-1, ~tools] - traj.pos[0, ~tools]).abs().max() > 0  # the untrained model does move plies
+    assert torch.isfinite(pred).all()
+
+
+def test_rollout_never_reads_future_ply_positions(runs, hierarchy):
+    traj = runs[0]
+    poisoned = traj.to("cpu")
+    poisoned.pos = traj.pos.clone()
+    poisoned.pos[1:, traj.ply_mask] = float("nan")  # a rollout must not need them
+
+    def predictor(data):
+        assert torch.isfinite(data["l0"].pos).all()
+        return torch.zeros_like(data["l0"].pos)
+
+    pred = rollout(predictor, poisoned, hierarchy)
+    assert torch.isfinite(pred).all()
+
+
+def test_static_baseline_error_is_the_rms_displacement(runs, hierarchy):
+    traj = runs[0]
+    pred = rollout(static_plies, traj, hierarchy)
+    ply = traj.ply_mask
+    u = traj.pos[:, ply] - traj.pos[0, ply]  # [T+1, n, 3]
+    expected = u.double().square().mean(dim=(1, 2)).sqrt()
+    torch.testing.assert_close(rollout_rmse(pred, traj.pos, ply).double(), expected, atol=1e-5, rtol=1e-5)
+
+
+def test_rigid_with_punch_by_hand():
+    data = HierarchicalData()
+    fine = data["l0"]
+    fine.pos = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [5.0, 0.0, 0.0], [0.0, 1.5, 0.0], [9.0, 0, 0]]
+    )
+    fine.node_type = torch.tensor([NodeType.PUNCH, NodeType.PLY, NodeType.PLY, NodeType.PUNCH, NodeType.DIE])
+    fine.bc_disp = torch.tensor([[0.0, 0.0, -1.0], [0, 0, 0], [0, 0, 0], [0.0, 0.0, -2.0], [0, 0, 0]])
+    out = RigidWithPunch(touch_radius=2.0)(data)
+    expected = torch.zeros(5, 3)
+    expected[1] = torch.tensor([0.0, 0.0, -1.0])  # nearest punch node 0 (distance 1 < 1.80 to node 3)
+    # node 2 is 5 mm from the punch: stays; tools get zero (their motion is prescribed anyway)
+    assert torch.equal(out, expected)
+    with pytest.raises(ValueError, match="touch_radius"):
+        RigidWithPunch(0.0)
+
+
+def test_process_trajectory_matches_the_simulated_setting(runs):
+    traj = runs[1]
+    setting = process_trajectory(SMALL, seed=4)
+    assert torch.equal(setting.gripper_nodes, traj.gripper_nodes)
+    torch.testing.assert_close(setting.gripper_anchor, traj.gripper_anchor)
+    torch.testing.assert_close(setting.gripper_force, traj.gripper_force)
+    tools = traj.node_type != NodeType.PLY
+    torch.testing.assert_close(setting.pos[:, tools], traj.pos[:, tools])
+    assert torch.equal(setting.pos[:, ~tools], traj.pos[:1, ~tools].expand(SMALL.num_steps + 1, -1, -1))
+    assert setting.meta["ground_truth"] is False
+    explicit = process_trajectory(
+        SMALL, traj.meta["gripper_edge_fraction"], traj.gripper_force.double().tolist()
+    )
+    assert torch.equal(explicit.gripper_nodes, traj.gripper_nodes)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(gripper_positions=[0.5], gripper_forces=[10.0, 10.0]), "gripper_positions needs 2"),
+        (dict(gripper_positions=[0.5, 1.5], gripper_forces=[10.0, 10.0]), r"in \[0, 1\]"),
+        (dict(gripper_positions=[0.5, 0.5], gripper_forces=[-1.0, 10.0]), ">= 0 N"),
+        (dict(gripper_positions=[0.5, float("nan")], gripper_forces=[1.0, 1.0]), "finite"),
+        (dict(gripper_positions=[0.5, 0.5]), "needs gripper_positions and gripper_forces"),
+        (dict(seed=1, gripper_positions=[0.5, 0.5]), "either a seed"),
+    ],
+)
+def test_process_trajectory_refuses_bad_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        process_trajectory(SMALL, **kwargs)

@@ -1,0 +1,314 @@
+"""Lightning module, data module, LR schedule, checkpoints and the torch-ampn CLI on a tiny dataset."""
+
+import csv
+import json
+import math
+
+import pytest
+import torch
+import yaml
+
+pytest.importorskip("lightning")
+
+import lightning as L  # noqa: E402
+
+from torch_ampn.data import NodeType  # noqa: E402
+from torch_ampn.data_cli import generate  # noqa: E402
+from torch_ampn.sim import StampFormingConfig  # noqa: E402
+from torch_ampn.training import AMPNDataModule, AMPNLightningModule, warmup_exponential_decay  # noqa: E402
+from torch_ampn.training.cli import main  # noqa: E402
+
+TINY_SIM = dict(ply_cells=5, punch_cells=[4, 4], die_cells=[4, 4], num_steps=6)
+SMALL_MODEL = dict(
+    hidden_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1, up_layers=1
+)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dataset")
+    cfg = StampFormingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in TINY_SIM.items()})
+    generate(root, 2, 1, 1, config=cfg, workers=1, compile=False, progress=False)
+    return root
+
+
+def _datamodule(data_dir, **kwargs):
+    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, **kwargs)
+    dm.setup("fit")
+    return dm
+
+
+def _fitted_module(data_dir, **kwargs):
+    module = AMPNLightningModule(**SMALL_MODEL, **kwargs)
+    dm = _datamodule(data_dir)
+    module.fit_statistics(dm.statistics_samples(8))
+    return module, dm
+
+
+# ---- schedule ---------------------------------------------------------------------------------
+def test_schedule_formula_at_chosen_steps():
+    lr, final, warm, total = 1e-4, 1e-5, 10, 110
+    f = lambda s: warmup_exponential_decay(s, warm, total, lr, final)  # noqa: E731
+    assert f(0) == pytest.approx(1 / 10) and f(4) == pytest.approx(5 / 10) and f(9) == pytest.approx(1.0)
+    assert f(10) == pytest.approx(1.0)  # decay starts at lr
+    assert lr * f(60) == pytest.approx(math.sqrt(lr * final))  # half-way: geometric mean
+    assert lr * f(110) == pytest.approx(final) and lr * f(500) == pytest.approx(final)
+    assert warmup_exponential_decay(3, 0, 10, 1.0, 0.1) == pytest.approx(0.1**0.3)
+    with pytest.raises(ValueError):
+        warmup_exponential_decay(0, 1, 10, 0.0, 1e-5)
+
+
+def test_module_scheduler_steps_per_optimiser_step(data_dir, monkeypatch):
+    module = AMPNLightningModule(**SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=4)
+    monkeypatch.setattr(module, "_total_steps", lambda: 24)
+    conf = module.configure_optimizers()
+    opt, sched = conf["optimizer"], conf["lr_scheduler"]["scheduler"]
+    assert conf["lr_scheduler"]["interval"] == "step"
+    lrs = []
+    for _ in range(30):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    expected = [1e-3 * (s + 1) / 4 if s < 4 else 1e-3 * 0.1 ** (min(s - 4, 20) / 20) for s in range(30)]
+    assert lrs == pytest.approx(expected, rel=1e-9)
+
+
+# ---- training ----------------------------------------------------------------------------------
+def test_one_training_step_lowers_the_loss_on_a_fixed_batch(data_dir):
+    torch.manual_seed(0)
+    module, dm = _fitted_module(data_dir, position_noise=0.0, residual_noise=0.0)
+    batch = next(iter(dm.train_dataloader()))
+    opt = torch.optim.Adam(module.parameters(), lr=1e-3)
+
+    def loss():
+        torch.manual_seed(1)  # the same N(0, 1) noise input every time
+        return module.training_step(batch, 0)
+
+    module.log = lambda *a, **k: None  # no trainer attached
+    before = loss()
+    before.backward()
+    opt.step()
+    with torch.no_grad():
+        after = loss()
+    assert float(after) < float(before)
+
+
+def test_normalisation_statistics_come_from_training_windows_only(data_dir):
+    module, dm = _fitted_module(data_dir)
+    s = module.surrogate
+    assert s.statistics_frozen
+    windows = list(dm.statistics_samples(8))
+    targets = torch.cat([w["l0"].target[w["l0"].ply_mask] for w in windows]).double()
+    torch.testing.assert_close(s.target_norm.mean, targets.mean(0))
+    torch.testing.assert_close(s.target_norm.std, targets.std(0, unbiased=False))
+    positions = torch.cat([w["l0"].pos for w in windows]).double()
+    assert s.position_std == pytest.approx(float(positions.std(0, unbiased=False).mean()))
+    with pytest.raises(RuntimeError, match="frozen"):
+        s.accumulate_statistics(windows[0])
+
+
+def test_training_noise_has_the_requested_size_on_plies_only(data_dir):
+    module, dm = _fitted_module(data_dir, position_noise=1e-2, residual_noise=1e-3)
+    window = dm.train_dataset[3]
+    clean_pos, clean_prev = window["l0"].pos.clone(), window["l0"].prev_disp.clone()
+    torch.manual_seed(0)
+    noisy = module.add_training_noise(window)
+    ply = noisy["l0"].ply_mask
+    sigma = module.surrogate.position_std
+    dpos = noisy["l0"].pos - clean_pos
+    dprev = noisy["l0"].prev_disp - clean_prev
+    assert torch.equal(dpos[~ply], torch.zeros_like(dpos[~ply]))  # tools never get noise
+    assert torch.equal(dprev[~ply], torch.zeros_like(dprev[~ply]))
+    assert float(dpos[ply].std()) == pytest.approx(1e-2 * sigma, rel=0.15)
+    assert float(dprev[ply].std()) == pytest.approx(1e-3 * sigma, rel=0.15)
+
+
+def test_robin_mode_trains_and_samples(data_dir):
+    torch.manual_seed(0)
+    module, dm = _fitted_module(data_dir, diffusion_steps=5)
+    module.log = lambda *a, **k: None
+    batch = next(iter(dm.train_dataloader()))
+    loss = module.training_step(batch, 0)
+    loss.backward()
+    assert torch.isfinite(loss)
+    item = dm._rollout_split("val")[0]
+    a, _ = module.rollout_item(item)
+    b, _ = module.rollout_item(item)
+    assert torch.equal(a, b)  # the rollout seed makes K-step sampling reproducible
+    assert a.shape == item.trajectory.pos.shape and torch.isfinite(a).all()
+
+
+def test_checkpoint_round_trip_gives_identical_rollouts(data_dir, tmp_path):
+    module, dm = _fitted_module(data_dir)
+    trainer = L.Trainer(
+        max_steps=2,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+    )
+    trainer.fit(module, datamodule=dm)
+    path = tmp_path / "model.ckpt"
+    trainer.save_checkpoint(path)
+    restored = AMPNLightningModule.load_from_checkpoint(path)
+    assert restored.surrogate.statistics_frozen
+    for name, value in module.surrogate.state_dict().items():
+        assert torch.equal(value, restored.surrogate.state_dict()[name]), name
+    item = dm._rollout_split("val")[0]
+    a, _ = module.rollout_item(item)
+    b, _ = restored.rollout_item(item)
+    assert torch.equal(a, b)
+    tools = item.trajectory.node_type != NodeType.PLY
+    assert torch.equal(a[:, tools], item.trajectory.pos[:, tools])
+
+
+def test_datamodule_checks_model_and_predict_settings(data_dir, tmp_path):
+    dm = _datamodule(data_dir)
+    with pytest.raises(ValueError, match="num_components=5"):
+        dm.check_model(AMPNLightningModule(**{**SMALL_MODEL, "num_components": 5}).surrogate)
+    with pytest.raises(ValueError, match="num_levels=4"):
+        dm.check_model(AMPNLightningModule(**{**SMALL_MODEL, "num_levels": 4}).surrogate)
+    with pytest.raises(ValueError, match="predict needs process settings"):
+        dm.predict_settings()
+    bad = tmp_path / "settings.json"
+    bad.write_text(json.dumps([{"gripper_positions": [0.5, 0.5]}]))
+    dm = AMPNDataModule(str(data_dir), generate=False, predict_file=str(bad))
+    with pytest.raises(ValueError, match=f"{bad}: setting 0 lacks field 'gripper_forces'"):
+        dm.predict_settings()
+    with pytest.raises(FileNotFoundError, match="no trajectories"):
+        AMPNDataModule(str(tmp_path / "empty"), generate=False).prepare_data()
+    with pytest.raises(ValueError, match="data.simulator"):
+        AMPNDataModule(str(tmp_path / "x"), simulator={"ply_cells": -3}).prepare_data()
+
+
+def test_datamodule_generates_an_empty_folder(tmp_path):
+    dm = AMPNDataModule(
+        str(tmp_path / "new"), num_train=1, num_val=0, num_test=0, simulator=TINY_SIM, generate_workers=1
+    )
+    dm.prepare_data()
+    files = sorted((tmp_path / "new" / "train").glob("*.pt"))
+    assert [f.name for f in files] == ["traj_000000.pt"]
+    assert dm.simulator_config().ply_cells == 5
+
+
+# ---- the CLI -----------------------------------------------------------------------------------
+def _config(tmp_path, data_dir):
+    out = tmp_path / "out"
+    config = {
+        "seed_everything": 0,
+        "trainer": {
+            "accelerator": "cpu",
+            "devices": 1,
+            "max_steps": 6,
+            "val_check_interval": 3,
+            "check_val_every_n_epoch": None,
+            "log_every_n_steps": 1,
+            "enable_model_summary": False,
+            "enable_progress_bar": False,
+            "logger": {
+                "class_path": "lightning.pytorch.loggers.CSVLogger",
+                "init_args": {"save_dir": str(out), "name": "logs", "version": ""},
+            },
+            "callbacks": [
+                {
+                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+                    "init_args": {"dirpath": str(out / "ckpt"), "save_last": True},
+                },
+                {
+                    "class_path": "lightning.pytorch.callbacks.LearningRateMonitor",
+                    "init_args": {"logging_interval": "step"},
+                },
+            ],
+        },
+        "model": {
+            **SMALL_MODEL,
+            "lr": 1e-3,
+            "final_lr": 1e-4,
+            "warmup_steps": 2,
+            "statistics_samples": 8,
+            "output_dir": str(out / "reports"),
+        },
+        "data": {"data_dir": str(data_dir), "generate": False, "min_coarse_nodes": 4},
+    }
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path, out
+
+
+def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
+    config, out = _config(tmp_path, data_dir)
+    main(["fit", "--config", str(config)])
+    ckpt = out / "ckpt" / "last.ckpt"
+    assert ckpt.is_file()
+
+    # the LR logged at every optimiser step follows the schedule (6 steps, warm-up 2)
+    with open(out / "logs" / "metrics.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("lr-Adam")]
+    logged = {int(r["step"]): float(r["lr-Adam"]) for r in rows}
+    for step, lr in logged.items():
+        assert lr == pytest.approx(1e-3 * warmup_exponential_decay(step, 2, 6, 1e-3, 1e-4), rel=1e-6)
+    assert len(logged) >= 5
+    assert any(r.get("val/rollout_rmse") for r in csv.DictReader(open(out / "logs" / "metrics.csv")))
+
+    # test needs only the checkpoint (+ where the data is): hyper-parameters come from it
+    capsys.readouterr()
+    main(
+        [
+            "test",
+            "--ckpt_path",
+            str(ckpt),
+            "--data.data_dir",
+            str(data_dir),
+            "--data.generate",
+            "false",
+            "--data.min_coarse_nodes",
+            "4",
+            "--model.output_dir",
+            str(out / "reports"),
+            "--trainer.default_root_dir",
+            str(out),
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert "best trivial baseline" in printed and "traj_200000" in printed
+    reports = out / "reports"
+    with open(reports / "test_rmse.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["trajectory"] for r in rows] == ["traj_200000"]
+    assert {"model", "static", "rigid_r3", "rollout_seconds"} <= set(rows[0])
+    summary = json.loads((reports / "test_summary.json").read_text())
+    assert summary["baseline_rmse"] <= summary["static_rmse"]
+    for name in ("rmse_over_time.png", "final_shape_traj_200000.png", "xdmf/traj_200000.xdmf"):
+        assert (reports / name).is_file(), name
+
+    # predict: new process settings from a file, no ground truth
+    settings = tmp_path / "settings.yaml"
+    settings.write_text(
+        yaml.safe_dump([{"name": "wide", "gripper_positions": [0.2, 0.8], "gripper_forces": [90.0, 10.0]}])
+    )
+    main(
+        [
+            "predict",
+            "--ckpt_path",
+            str(ckpt),
+            "--data.data_dir",
+            str(data_dir),
+            "--data.generate",
+            "false",
+            "--data.min_coarse_nodes",
+            "4",
+            "--data.predict_file",
+            str(settings),
+            "--model.output_dir",
+            str(out / "reports"),
+            "--trainer.default_root_dir",
+            str(out),
+        ]
+    )
+    predicted = reports / "predict"
+    for name in ("wide.xdmf", "wide.png", "wide.json"):
+        assert (predicted / name).is_file(), name
+    info = json.loads((predicted / "wide.json").read_text())
+    assert info["gripper_force"] == [90.0, 10.0]

@@ -1,0 +1,214 @@
+"""AMPNSurrogate: features, normalisation and the (diffusion) AMPN as one next-step predictor."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.nn.ampn import AMPN, EdgeType
+from torch_ampn.nn.diffusion import DiffusionAMPN
+from torch_ampn.nn.features import (
+    hierarchical_features,
+    num_coarse_node_features,
+    num_edge_features,
+    num_fine_node_features,
+)
+from torch_ampn.nn.normalizer import Normalizer
+from torch_ampn.transforms.contact import ComponentRadiusGraph
+
+RELATIONS = ("mesh", "contact", "down", "up")
+
+
+class AMPNSurrogate(nn.Module):
+    r"""Next-step predictor of ply displacements: features -> normalisation -> AMPN -> residual in mm.
+
+    It owns everything a checkpoint needs to roll out a trajectory: the network (an
+    :class:`~torch_ampn.nn.AMPN` wrapped in :class:`~torch_ampn.nn.DiffusionAMPN`; ``K = 1`` is plain
+    AMPN), the :class:`~torch_ampn.nn.Normalizer` of every input kind and of the target (statistics from
+    training data, saved in the state dict) and the contact-edge settings
+    (:attr:`contact`, a :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
+
+    Inputs are :class:`~torch_ampn.data.HierarchicalData` windows as made by
+    :func:`~torch_ampn.data.step_sample` (one or a ``Batch``), with contact edges filled.
+
+    Args:
+        num_components: Components of the mesh ``C`` (plies and tools; 6 for the default dataset).
+        num_grippers: Grippers ``G`` (2 for the default dataset).
+        hidden_channels: Latent size :math:`d` (paper: 128).
+        num_levels: Levels of the V-cycle, ``L + 1`` (paper: 4; 1 = flat MeshGraphNet baseline).
+        pre_layers: Layers of the Pre stack (paper: 3).
+        down_layers: Layers of the Down stack (paper: 2).
+        solve_layers: Layers of the Solve stack (paper: 5).
+        post_layers: Layers of the Post stack (paper: 3).
+        up_layers: Layers of the Up stack (paper: 2).
+        aggr: Aggregation of all layers.
+        diffusion_steps: ``K`` of ROBIN mode; 1 = AMPN with the plain MSE objective.
+        contact_radius: Contact radius ``r`` (mm).
+        contact_k: Contact neighbours per other component.
+        level_radius_scale: Per-level radius scale of the contact edges (see
+            :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
+        gripper_alpha: Distance decay :math:`\alpha` of the gripper features.
+    """
+
+    def __init__(
+        self,
+        num_components: int = 6,
+        num_grippers: int = 2,
+        hidden_channels: int = 128,
+        num_levels: int = 4,
+        pre_layers: int = 3,
+        down_layers: int = 2,
+        solve_layers: int = 5,
+        post_layers: int = 3,
+        up_layers: int = 2,
+        aggr: str = "max",
+        diffusion_steps: int = 1,
+        contact_radius: float = 3.0,
+        contact_k: int = 3,
+        level_radius_scale: float | Sequence[float] | None = None,
+        gripper_alpha: float = 3e-2,
+    ) -> None:
+        super().__init__()
+        if num_components < 2:
+            raise ValueError(f"num_components must be >= 2 (plies and tools), got {num_components}")
+        if diffusion_steps < 1:
+            raise ValueError(f"diffusion_steps must be >= 1, got {diffusion_steps}")
+        self.num_components = num_components
+        self.num_grippers = num_grippers
+        self.num_levels = num_levels
+        self.gripper_alpha = gripper_alpha
+        self.contact = ComponentRadiusGraph(
+            contact_radius, contact_k, level_radius_scale=level_radius_scale, num_components=num_components
+        )
+        fine_in = num_fine_node_features(num_components, num_grippers)
+        model = AMPN(
+            fine_in,
+            hidden_channels=hidden_channels,
+            num_levels=num_levels,
+            pre_layers=pre_layers,
+            down_layers=down_layers,
+            solve_layers=solve_layers,
+            post_layers=post_layers,
+            up_layers=up_layers,
+            aggr=aggr,
+            num_step_frequencies=4 if diffusion_steps > 1 else 0,
+            max_step=max(diffusion_steps - 1, 1),
+        )
+        self.diffusion = DiffusionAMPN(model, diffusion_steps)
+        self.node_norm = nn.ModuleDict(
+            {"fine": Normalizer(fine_in), "coarse": Normalizer(num_coarse_node_features())}
+        )
+        self.edge_norm = nn.ModuleDict({rel: Normalizer(num_edge_features(rel)) for rel in RELATIONS})
+        self.target_norm = Normalizer(3)
+        self.position_norm = Normalizer(3)
+
+    @property
+    def model(self) -> AMPN:
+        """The network."""
+        return self.diffusion.model
+
+    @property
+    def diffusion_steps(self) -> int:
+        """``K``."""
+        return self.diffusion.num_steps
+
+    # ---- statistics --------------------------------------------------------------------
+    def _normalizers(self) -> list[Normalizer]:
+        return [*self.node_norm.values(), *self.edge_norm.values(), self.target_norm, self.position_norm]
+
+    @property
+    def statistics_frozen(self) -> bool:
+        """Whether the normalisation statistics are final (after :meth:`freeze_statistics`)."""
+        return all(bool(n.frozen) for n in self._normalizers())
+
+    @torch.no_grad()
+    def accumulate_statistics(self, data: HierarchicalData) -> None:
+        """Add a training window (or batch) to the statistics of every normaliser."""
+        self._check_levels(data)
+        x_dict, e_dict = hierarchical_features(
+            data, self.num_components, self.num_levels, alpha=self.gripper_alpha
+        )
+        for lk, x in x_dict.items():
+            self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
+        for (_, rel, _), e in e_dict.items():
+            self.edge_norm[rel].update(e)
+        fine = data["l0"]
+        self.target_norm.update(fine.target[fine.ply_mask])
+        self.position_norm.update(fine.pos)
+
+    def freeze_statistics(self) -> None:
+        """Freeze every normaliser (later :meth:`accumulate_statistics` calls raise)."""
+        for n in self._normalizers():
+            n.freeze()
+
+    @property
+    def position_std(self) -> float:
+        r""":math:`\sigma_x`: the standard deviation of training node positions (mean over axes)."""
+        return float(self.position_norm.std.mean())
+
+    # ---- features ----------------------------------------------------------------------
+    def _check_levels(self, data: HierarchicalData) -> None:
+        if data.num_levels < self.num_levels:
+            raise ValueError(
+                f"the model uses {self.num_levels} levels but the hierarchy has only {data.num_levels}; "
+                "build a deeper hierarchy (smaller min_coarse_nodes) or lower num_levels"
+            )
+
+    def normalized_features(
+        self, data: HierarchicalData
+    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor]]:
+        """``(x_dict, edge_index_dict, edge_attr_dict)`` of the used levels, normalised."""
+        self._check_levels(data)
+        x_dict, e_dict = hierarchical_features(
+            data, self.num_components, self.num_levels, alpha=self.gripper_alpha
+        )
+        x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
+        e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
+        device = data["l0"].pos.device
+        empty = torch.empty(2, 0, dtype=torch.long, device=device)
+        index_dict = {key: data[key].edge_index if key in data.edge_types else empty for key in e_dict}
+        return x_dict, index_dict, e_dict
+
+    @staticmethod
+    def _batch_dict(data: HierarchicalData, num_levels: int) -> dict[str, Tensor] | None:
+        if "batch" not in data["l0"]:
+            return None
+        return {level_name(k): data[level_name(k)].batch for k in range(num_levels)}
+
+    # ---- training and inference -------------------------------------------------------
+    def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
+        """Training loss on the ply nodes of a window (batch): MSE on the normalised residual (ROBIN: on v).
+
+        ``data["l0"].target`` is the residual in mm and ``data["l0"].ply_mask`` selects the predicted nodes.
+        """
+        x_dict, index_dict, e_dict = self.normalized_features(data)
+        fine = data["l0"]
+        target = self.target_norm(fine.target)
+        return self.diffusion.loss(
+            target,
+            x_dict,
+            index_dict,
+            e_dict,
+            batch_dict=self._batch_dict(data, self.num_levels),
+            node_mask=fine.ply_mask,
+            generator=generator,
+        )
+
+    def predict_residual(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
+        r"""Predicted residual :math:`\Delta u^t` in mm of every ``l0`` node, ``[N_0, 3]`` (K-step sampling).
+
+        Tool rows are whatever the network says; callers replace them by the prescribed motion.
+        """
+        x_dict, index_dict, e_dict = self.normalized_features(data)
+        out = self.diffusion.sample(x_dict, index_dict, e_dict, generator=generator)
+        return self.target_norm.denormalize(out.float())
+
+    def extra_repr(self) -> str:
+        """Data sizes shown by ``repr``."""
+        return (
+            f"num_components={self.num_components}, num_grippers={self.num_grippers}, "
+            f"diffusion_steps={self.diffusion_steps}"
+        )

@@ -1,0 +1,103 @@
+r"""Autoregressive rollout of a whole trajectory, and its error metric.
+
+A rollout starts from a trajectory's initial state and repeats, for ``t = 1 .. T``:
+build the window ``(t-1, t)`` from the *predicted* positions (:func:`~torch_ampn.data.step_sample`),
+rebuild the contact edges on every level from those positions, predict the residual
+:math:`\Delta\tilde u^t` and set :math:`\tilde u^t = \tilde u^{t-1} + \Delta\tilde u^t` on ply nodes.
+Tool nodes follow their prescribed motion (the trajectory's tool positions) exactly.
+
+The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in mm of every
+``l0`` node): :meth:`~torch_ampn.nn.AMPNSurrogate.predict_residual` or a baseline of
+:mod:`torch_ampn.baselines`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torch_ampn.data.dataset import step_sample
+from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.data.trajectory import Trajectory
+
+Predictor = Callable[[HierarchicalData], Tensor]
+Transform = Callable[[HierarchicalData], HierarchicalData]
+
+
+@torch.no_grad()
+def rollout(
+    predictor: Predictor,
+    traj: Trajectory,
+    hierarchy: HierarchicalData,
+    contact: Transform | None = None,
+    num_steps: int | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+) -> Tensor:
+    """Roll ``predictor`` out over ``traj`` from its initial state.
+
+    Args:
+        predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm.
+        traj: The trajectory: its initial state, mesh, gripper settings and tool motion are
+            used; its ply positions after step 0 are never read.
+        hierarchy: The hierarchy of ``traj``'s mesh (e.g. from
+            :class:`~torch_ampn.data.HierarchyCache`); not modified.
+        contact: Transform that fills the contact edges from current positions (e.g.
+            ``surrogate.contact``); ``None`` for no contact edges.
+        num_steps: Steps to roll out (default: all ``T``).
+        device: Where to run (default: the hierarchy's device).
+        progress: Show a progress bar.
+
+    Returns:
+        Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
+    """
+    steps = traj.num_steps if num_steps is None else num_steps
+    if not 1 <= steps <= traj.num_steps:
+        raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
+    if device is None:
+        device = hierarchy["l0", "mesh", "l0"].edge_index.device
+    device = torch.device(device)
+    traj = traj.to(device)
+    if hierarchy["l0", "mesh", "l0"].edge_index.device != device:
+        hierarchy = hierarchy.clone().to(device)  # .to() works in place: keep the caller's copy
+    ply = traj.ply_mask  # [N]
+    # Prediction buffer: tools on their prescribed path, plies at rest until predicted.
+    pred = traj.pos.clone().float()  # [T+1, N, 3]
+    pred[1:, ply] = pred[0, ply]
+    state = dataclasses.replace(traj, pos=pred)
+    iterator = range(1, steps + 1)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
+    for t in iterator:
+        data = step_sample(state, t, hierarchy)
+        if contact is not None:
+            data = contact(data)
+        du = predictor(data).float()  # [N, 3]
+        pred[t] = torch.where(ply[:, None], pred[t - 1] + du, pred[t])
+    return pred[: steps + 1].cpu()
+
+
+def rollout_rmse(pred: Tensor, true: Tensor, mask: Tensor | None = None) -> Tensor:
+    r"""RMSE per step between predicted and true positions (seed paper, "Results"), ``[T+1]``.
+
+    :math:`\mathrm{RMSE}_t = \sqrt{\frac{1}{3 N} \sum_{i, j} (\tilde u_{ij}^t - u_{ij}^t)^2}` over the
+    ``N`` nodes selected by ``mask`` (ply nodes) and their 3 coordinates; average rows
+    ``1 .. T`` for the paper's per-trajectory number (row 0, the given initial state, is 0).
+
+    Args:
+        pred: Predicted positions ``[T+1, N, 3]``.
+        true: True positions, same shape (its first ``T+1`` steps are used if longer).
+        mask: ``BoolTensor[N]`` nodes to compare (default: all).
+    """
+    true = true[: pred.size(0)]
+    if pred.shape != true.shape:
+        raise ValueError(f"pred {list(pred.shape)} and true {list(true.shape)} must have the same shape")
+    diff = pred.double() - true.double().to(pred.device)  # [T+1, N, 3]
+    if mask is not None:
+        diff = diff[:, mask.to(pred.device)]
+    return diff.square().mean(dim=(1, 2)).sqrt().float()

@@ -1,0 +1,280 @@
+"""AMPNDataModule: the dataset folder (made by the embedded simulator when empty) as Lightning dataloaders."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader as TorchDataLoader
+from torch_geometric.loader import DataLoader
+
+from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, split_files
+from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.data_cli import generate
+from torch_ampn.sim.config import StampFormingConfig
+from torch_ampn.training.items import RolloutDataset, identity_collate
+from torch_ampn.transforms.contact import ComponentRadiusGraph
+
+
+def _config_from_dict(values: dict[str, Any]) -> StampFormingConfig:
+    return StampFormingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+class AMPNDataModule(L.LightningDataModule):
+    """Training windows and whole trajectories of a dataset folder.
+
+    Layout: ``<data_dir>/{train,val,test}/*.pt`` (see :mod:`torch_ampn.data.trajectory`). With
+    ``generate=True`` the missing trajectories of the requested split sizes are simulated
+    first with the embedded simulator (``torch-ampn-data generate``, progress bar, parallel,
+    resumable), so an empty folder becomes the default dataset.
+
+    * ``fit``: :class:`~torch_ampn.data.StepDataset` windows with contact edges
+      (:class:`~torch_ampn.transforms.ComponentRadiusGraph`), batched by PyG's ``DataLoader``;
+      validation yields whole trajectories (one :class:`~torch_ampn.training.items.RolloutItem`
+      per batch) for rollouts.
+    * ``test``: whole test trajectories.
+    * ``predict``: new process settings, from ``predict_file`` (JSON or YAML: a list of
+      ``{"gripper_positions": [...], "gripper_forces": [...]}``, optional ``"name"``) or from
+      ``predict_gripper_positions`` / ``predict_gripper_forces``; the tools and the mesh are
+      those of the dataset's simulator settings (``dataset.json``).
+
+    Args:
+        data_dir: Dataset folder.
+        num_train: Training trajectories to generate (when ``generate``).
+        num_val: Validation trajectories to generate.
+        num_test: Test trajectories to generate.
+        resolution: ``"coarse"`` or ``"paper"`` (simulator resolution when generating).
+        simulator: Overrides of :class:`~torch_ampn.sim.StampFormingConfig` fields for generating
+            (e.g. ``{"ply_cells": 24}``), applied on top of ``resolution``.
+        generate: Simulate missing trajectories in ``prepare_data``.
+        generate_workers: Processes for generating (default: CPU cores).
+        batch_size: Training windows per batch (paper: 1).
+        num_workers: Dataloader worker processes for training windows.
+        max_levels: Hierarchy levels (linked to the model's ``num_levels`` by the CLI).
+        min_coarse_nodes: Stop coarsening below this many nodes.
+        contact_radius: Contact radius of training windows (linked to the model's).
+        contact_k: Contact neighbours per other component (linked to the model's).
+        limit_val_trajectories: Use only the first ones of the validation split (rollouts are costly).
+        predict_file: Process settings to predict (JSON/YAML list).
+        predict_gripper_positions: Or: one list of gripper edge fractions per setting.
+        predict_gripper_forces: And: one list of gripper forces (N) per setting.
+    """
+
+    def __init__(
+        self,
+        data_dir: str = "data/default",
+        num_train: int = 24,
+        num_val: int = 2,
+        num_test: int = 4,
+        resolution: str = "coarse",
+        simulator: dict[str, Any] | None = None,
+        generate: bool = True,
+        generate_workers: int | None = None,
+        batch_size: int = 1,
+        num_workers: int = 0,
+        max_levels: int = 4,
+        min_coarse_nodes: int = 16,
+        contact_radius: float = 3.0,
+        contact_k: int = 3,
+        limit_val_trajectories: int | None = None,
+        predict_file: str | None = None,
+        predict_gripper_positions: list[list[float]] | None = None,
+        predict_gripper_forces: list[list[float]] | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.data_dir = Path(data_dir)
+        self.contact = ComponentRadiusGraph(contact_radius, contact_k)
+        self.hierarchies = HierarchyCache(
+            self.data_dir / "cache", max_levels=max_levels, min_coarse_nodes=min_coarse_nodes
+        )
+        self.train_dataset: StepDataset | None = None
+        self._splits: dict[str, RolloutDataset] = {}
+
+    # ---- data on disk ------------------------------------------------------------------------
+    def prepare_data(self) -> None:
+        """Simulate the missing trajectories (``generate=True``), or check that the folder has data."""
+        hp = self.hparams
+        if hp.generate:
+            generate(
+                self.data_dir,
+                hp.num_train,
+                hp.num_val,
+                hp.num_test,
+                resolution=hp.resolution,
+                workers=hp.generate_workers,
+                config=self._generator_config(),
+            )
+            return
+        if not any(split_files(self.data_dir, s) for s in ("train", "val", "test")):
+            raise FileNotFoundError(
+                f"{self.data_dir}: no trajectories; set data.generate=true to simulate the default dataset"
+            )
+
+    def _generator_config(self) -> StampFormingConfig | None:
+        overrides = self.hparams.simulator
+        if not overrides:
+            return None
+        base = StampFormingConfig.paper() if self.hparams.resolution == "paper" else StampFormingConfig()
+        values = {**base.to_dict(), **overrides}
+        try:
+            cfg = _config_from_dict(values)
+            cfg.validate()
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"data.simulator: invalid simulator settings {overrides} ({err})") from err
+        return cfg
+
+    def simulator_config(self) -> StampFormingConfig:
+        """The simulator settings the dataset was made with (``dataset.json``; default if absent)."""
+        spec = self.data_dir / "dataset.json"
+        if not spec.exists():
+            return StampFormingConfig()
+        try:
+            return _config_from_dict(json.loads(spec.read_text())["simulator"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(
+                f"{spec}: field 'simulator' is not a valid simulator configuration ({err})"
+            ) from err
+
+    # ---- stages ---------------------------------------------------------------------------------
+    def _rollout_split(self, split: str, limit: int | None = None) -> RolloutDataset:
+        trajectories = TrajectoryDataset(self.data_dir, split)
+        count = len(trajectories) if limit is None else min(limit, len(trajectories))
+        names = [f.stem for f in trajectories.files[:count]]
+        return RolloutDataset(names, trajectories.__getitem__, self.hierarchies)
+
+    def setup(self, stage: str) -> None:
+        """Open the splits the stage needs."""
+        hp = self.hparams
+        if stage == "fit":
+            self.train_dataset = StepDataset(
+                self.data_dir,
+                "train",
+                max_levels=hp.max_levels,
+                min_coarse_nodes=hp.min_coarse_nodes,
+                transform=self.contact,
+            )
+        if stage in ("fit", "validate"):
+            self._splits["val"] = self._rollout_split("val", hp.limit_val_trajectories)
+        if stage == "test":
+            self._splits["test"] = self._rollout_split("test")
+        if stage == "predict":
+            self._splits["predict"] = self._predict_split()
+
+    def _predict_split(self) -> RolloutDataset:
+        from torch_ampn.sim.simulate import process_trajectory
+
+        settings = self.predict_settings()
+        cfg = self.simulator_config()
+        names = [s.get("name") or f"setting_{i:03d}" for i, s in enumerate(settings)]
+
+        def load(i: int) -> Trajectory:
+            s = settings[i]
+            traj = process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"])
+            return traj
+
+        return RolloutDataset(names, load, self.hierarchies)
+
+    def predict_settings(self) -> list[dict[str, Any]]:
+        """The process settings to predict, checked (errors name the file and the field)."""
+        hp = self.hparams
+        if hp.predict_file:
+            path = Path(hp.predict_file)
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: no such predict file")
+            text = path.read_text()
+            if path.suffix in (".yaml", ".yml"):
+                import yaml
+
+                settings = yaml.safe_load(text)
+            else:
+                settings = json.loads(text)
+            source = str(path)
+        elif hp.predict_gripper_positions is not None or hp.predict_gripper_forces is not None:
+            positions, forces = hp.predict_gripper_positions or [], hp.predict_gripper_forces or []
+            if len(positions) != len(forces):
+                raise ValueError(
+                    f"predict_gripper_positions has {len(positions)} settings, "
+                    f"predict_gripper_forces {len(forces)}"
+                )
+            settings = [
+                {"gripper_positions": p, "gripper_forces": f} for p, f in zip(positions, forces, strict=True)
+            ]
+            source = "data.predict_gripper_positions/forces"
+        else:
+            raise ValueError(
+                "predict needs process settings: data.predict_file, or data.predict_gripper_positions "
+                "and data.predict_gripper_forces"
+            )
+        if not isinstance(settings, list) or not settings:
+            raise ValueError(f"{source}: expected a non-empty list of settings")
+        for i, s in enumerate(settings):
+            for key in ("gripper_positions", "gripper_forces"):
+                if not isinstance(s, dict) or key not in s:
+                    raise ValueError(f"{source}: setting {i} lacks field {key!r}")
+        return settings
+
+    # ---- dataloaders ----------------------------------------------------------------------------
+    def train_dataloader(self) -> DataLoader:
+        """Shuffled training windows (PyG batches of :class:`HierarchicalData`)."""
+        assert self.train_dataset is not None, "call setup('fit') first"
+        workers = self.hparams.num_workers
+        return DataLoader(
+            self.train_dataset,
+            batch_size=self.hparams.batch_size,
+            shuffle=True,
+            num_workers=workers,
+            persistent_workers=workers > 0,
+        )
+
+    def _items(self, split: str) -> TorchDataLoader:
+        return TorchDataLoader(self._splits[split], batch_size=None, collate_fn=identity_collate)
+
+    def val_dataloader(self) -> TorchDataLoader:
+        """Whole validation trajectories."""
+        return self._items("val")
+
+    def test_dataloader(self) -> TorchDataLoader:
+        """Whole test trajectories."""
+        return self._items("test")
+
+    def predict_dataloader(self) -> TorchDataLoader:
+        """Process settings to roll out."""
+        return self._items("predict")
+
+    # ---- used by the model -------------------------------------------------------------------
+    def statistics_samples(self, count: int) -> list[HierarchicalData]:
+        """``count`` training windows spread evenly over the training set (for normalisation statistics)."""
+        assert self.train_dataset is not None, "call setup('fit') first"
+        n = len(self.train_dataset)
+        stride = max(1, math.ceil(n / max(count, 1)))
+        return (self.train_dataset[i] for i in range(0, n, stride))  # type: ignore[return-value]
+
+    def check_model(self, surrogate: torch.nn.Module) -> None:
+        """Raise a clear error if the model's component/gripper counts do not match the data."""
+        split = next((s for s in ("train", "val", "test") if split_files(self.data_dir, s)), None)
+        if split is None:
+            return
+        traj = Trajectory.load(split_files(self.data_dir, split)[0])
+        for name, data_value in (
+            ("num_components", traj.num_components),
+            ("num_grippers", traj.num_grippers),
+        ):
+            model_value = getattr(surrogate, name)
+            if model_value != data_value:
+                raise ValueError(
+                    f"model.{name}={model_value} but the trajectories in {self.data_dir} have {data_value}"
+                )
+        levels = self.hierarchies(traj).num_levels
+        if levels < surrogate.num_levels:
+            raise ValueError(
+                f"the model uses num_levels={surrogate.num_levels} but the hierarchy of "
+                f"{self.data_dir}'s mesh has "
+                f"{levels} levels (data.min_coarse_nodes={self.hparams.min_coarse_nodes}); "
+                "lower model.num_levels"
+            )

@@ -1,0 +1,243 @@
+"""AMPNLightningModule: next-step residual training, rollout validation, test reports and prediction."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from torch_ampn.baselines import RigidWithPunch, static_plies
+from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.nn.surrogate import AMPNSurrogate
+from torch_ampn.rollout import rollout, rollout_rmse
+from torch_ampn.training.items import RolloutItem
+from torch_ampn.training.report import TestReport, write_prediction
+from torch_ampn.training.schedule import warmup_exponential_decay
+
+
+class AMPNLightningModule(L.LightningModule):
+    r"""Trains an :class:`~torch_ampn.nn.AMPNSurrogate` with the seed paper's recipe.
+
+    * **fit**: MSE on the normalised next-step residual of ply nodes (ROBIN mode with
+      ``diffusion_steps > 1``: the v-prediction loss at a random diffusion step); Adam;
+      linear warm-up over ``warmup_steps`` then exponential decay ``lr -> final_lr`` over the
+      remaining steps, stepped per optimiser step; training noise ``position_noise`` *
+      :math:`\sigma_x` on ply positions and ``residual_noise`` * :math:`\sigma_x` on the
+      previous residual (:math:`\sigma_x`: std of training node positions). Gradient clipping
+      at norm 1 is the Trainer's ``gradient_clip_val`` (the ``torch-ampn`` CLI sets it).
+      Normalisation statistics come from up to ``statistics_samples`` training windows
+      before the first step and are stored in the checkpoint.
+    * **validate**: full autoregressive rollout of each validation trajectory; logs
+      ``val/rollout_rmse`` (mm over ply nodes, averaged over steps).
+    * **test**: the same on the test trajectories, side by side with the trivial baselines
+      (:mod:`torch_ampn.baselines`); writes a CSV table, plots and XDMF rollouts to
+      ``output_dir`` (see :class:`~torch_ampn.training.report.TestReport`).
+    * **predict**: rollouts of new process settings without ground truth (XDMF + PNG).
+
+    Args:
+        num_components: Components of the mesh (plies + tools; 6 for the default dataset).
+        num_grippers: Grippers (2 for the default dataset).
+        hidden_channels: Latent size (paper: 128).
+        num_levels: V-cycle levels ``L + 1`` (paper: 4; 1 = flat MeshGraphNet baseline).
+        pre_layers: Pre stack layers.
+        down_layers: Down stack layers.
+        solve_layers: Solve stack layers.
+        post_layers: Post stack layers.
+        up_layers: Up stack layers.
+        aggr: Aggregation (``"max"``, ``"sum"``, ``"mean"``).
+        diffusion_steps: ROBIN's ``K`` (1 = AMPN).
+        contact_radius: Contact radius (mm); the data module builds training contact edges with it.
+        contact_k: Contact neighbours per other component.
+        lr: Peak learning rate (paper: 1e-4).
+        final_lr: Learning rate at the last step (paper: 1e-5).
+        warmup_steps: Linear warm-up steps (paper: 1,000).
+        position_noise: Training noise on ply positions, in units of :math:`\sigma_x` (paper: 1e-5).
+        residual_noise: Training noise on the previous residual, in units of :math:`\sigma_x` (paper: 1e-6).
+        statistics_samples: Training windows used for the normalisation statistics.
+        rollout_seed: Seed of the noise input during rollouts (rollouts are reproducible).
+        touch_radii: Radii (mm) tried for the rigid-with-punch baseline; the best is reported.
+        output_dir: Where test/predict write their files (default: the logger's folder, else ``outputs``).
+        export_xdmf: Write XDMF rollouts in test and predict.
+    """
+
+    def __init__(
+        self,
+        num_components: int = 6,
+        num_grippers: int = 2,
+        hidden_channels: int = 128,
+        num_levels: int = 4,
+        pre_layers: int = 3,
+        down_layers: int = 2,
+        solve_layers: int = 5,
+        post_layers: int = 3,
+        up_layers: int = 2,
+        aggr: str = "max",
+        diffusion_steps: int = 1,
+        contact_radius: float = 3.0,
+        contact_k: int = 3,
+        lr: float = 1e-4,
+        final_lr: float = 1e-5,
+        warmup_steps: int = 1000,
+        position_noise: float = 1e-5,
+        residual_noise: float = 1e-6,
+        statistics_samples: int = 1000,
+        rollout_seed: int = 0,
+        touch_radii: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0),
+        output_dir: str | None = None,
+        export_xdmf: bool = True,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.surrogate = AMPNSurrogate(
+            num_components=num_components,
+            num_grippers=num_grippers,
+            hidden_channels=hidden_channels,
+            num_levels=num_levels,
+            pre_layers=pre_layers,
+            down_layers=down_layers,
+            solve_layers=solve_layers,
+            post_layers=post_layers,
+            up_layers=up_layers,
+            aggr=aggr,
+            diffusion_steps=diffusion_steps,
+            contact_radius=contact_radius,
+            contact_k=contact_k,
+        )
+        self._report: TestReport | None = None
+
+    # ---- set-up --------------------------------------------------------------------------
+    def setup(self, stage: str) -> None:
+        """Check the data against the model; before fitting, accumulate the normalisation statistics."""
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if datamodule is not None and hasattr(datamodule, "check_model"):
+            datamodule.check_model(self.surrogate)
+        if stage == "fit" and not self.surrogate.statistics_frozen:
+            if datamodule is None or not hasattr(datamodule, "statistics_samples"):
+                raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
+            self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
+
+    def fit_statistics(self, samples: Any) -> None:
+        """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
+        from tqdm.auto import tqdm
+
+        enabled = self._trainer is None or self.trainer.is_global_zero
+        for data in tqdm(samples, desc="normalisation statistics", unit="window", disable=not enabled):
+            self.surrogate.accumulate_statistics(data)
+        self.surrogate.freeze_statistics()
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        """Adam with the warm-up + exponential-decay schedule, stepped per optimiser step."""
+        hp = self.hparams
+        optimizer = torch.optim.Adam(self.parameters(), lr=hp.lr)
+        total = self._total_steps()
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer,
+            lambda step: warmup_exponential_decay(step, hp.warmup_steps, total, hp.lr, hp.final_lr),
+        )
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def _total_steps(self) -> int:
+        if self._trainer is None:
+            return max(self.hparams.warmup_steps + 1, 1)
+        total = self.trainer.estimated_stepping_batches
+        if total is None or total == float("inf"):
+            raise ValueError(
+                "set trainer.max_steps (or max_epochs): the LR schedule needs the number of steps"
+            )
+        return int(total)
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Training windows move as usual; rollout items move inside :func:`~torch_ampn.rollout.rollout`."""
+        if isinstance(batch, RolloutItem):
+            return batch
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    # ---- training --------------------------------------------------------------------------
+    def add_training_noise(self, data: HierarchicalData) -> HierarchicalData:
+        r"""Perturb ply positions and previous residuals with N(0, (noise :math:`\sigma_x`)^2), in place."""
+        hp = self.hparams
+        fine = data["l0"]
+        ply = fine.ply_mask[:, None].to(fine.pos.dtype)  # [N, 1]
+        sigma_x = self.surrogate.position_std
+        if hp.position_noise > 0:
+            fine.pos = fine.pos + ply * (hp.position_noise * sigma_x) * torch.randn_like(fine.pos)
+        if hp.residual_noise > 0:
+            fine.prev_disp = fine.prev_disp + ply * (hp.residual_noise * sigma_x) * torch.randn_like(fine.pos)
+        return data
+
+    def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
+        """One next-step residual loss on a batch of windows."""
+        loss = self.surrogate.loss(self.add_training_noise(batch))
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch.num_graphs)
+        return loss
+
+    # ---- rollouts ----------------------------------------------------------------------------
+    def _generator(self, index: int) -> torch.Generator:
+        return torch.Generator(device=self.device).manual_seed(self.hparams.rollout_seed + index)
+
+    def rollout_item(self, item: RolloutItem, progress: bool = False) -> tuple[Tensor, float]:
+        """Roll the surrogate out over ``item``'s trajectory: ``([T+1, N, 3] positions, seconds)``."""
+        generator = self._generator(item.index)
+        start = time.perf_counter()
+        pred = rollout(
+            lambda data: self.surrogate.predict_residual(data, generator),
+            item.trajectory,
+            item.hierarchy,
+            self.surrogate.contact,
+            device=self.device,
+            progress=progress,
+        )
+        return pred, time.perf_counter() - start
+
+    def validation_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
+        """Full rollout of one validation trajectory; logs ``val/rollout_rmse``."""
+        pred, _ = self.rollout_item(item)
+        rmse = rollout_rmse(pred, item.trajectory.pos, item.trajectory.ply_mask)[1:].mean()
+        self.log("val/rollout_rmse", rmse, prog_bar=True, batch_size=1, sync_dist=True)
+        return rmse
+
+    def on_test_epoch_start(self) -> None:
+        """Start a new test report."""
+        self._report = TestReport(self.output_dir())
+
+    def test_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
+        """Rollout of one test trajectory next to the baselines; rows go to the report."""
+        traj = item.trajectory
+        pred, seconds = self.rollout_item(item)
+        rmse = rollout_rmse(pred, traj.pos, traj.ply_mask)  # [T+1]
+        baselines = {
+            "static": rollout_rmse(rollout(static_plies, traj, item.hierarchy), traj.pos, traj.ply_mask)
+        }
+        for radius in self.hparams.touch_radii:
+            rigid = rollout(RigidWithPunch(radius), traj, item.hierarchy)
+            baselines[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
+        assert self._report is not None
+        self._report.add(item, pred, rmse, baselines, seconds, xdmf=self.hparams.export_xdmf)
+        value = rmse[1:].mean()
+        self.log("test/rollout_rmse", value, batch_size=1, sync_dist=True)
+        return value
+
+    def on_test_epoch_end(self) -> None:
+        """Write the table, plots and summary; log the baseline comparison."""
+        assert self._report is not None
+        if self.trainer.is_global_zero:
+            summary = self._report.finish()
+            self.log_dict({f"test/{k}": float(v) for k, v in summary.items()}, rank_zero_only=True)
+
+    def predict_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
+        """Rollout of a new process setting: writes XDMF and a PNG; returns positions ``[T+1, N, 3]``."""
+        pred, seconds = self.rollout_item(item)
+        write_prediction(self.output_dir() / "predict", item, pred, seconds, xdmf=self.hparams.export_xdmf)
+        return pred
+
+    def output_dir(self) -> Path:
+        """Folder for test and predict outputs."""
+        if self.hparams.output_dir:
+            return Path(self.hparams.output_dir)
+        if self._trainer is not None and self.trainer.log_dir is not None:
+            return Path(self.trainer.log_dir)
+        return Path("outputs")

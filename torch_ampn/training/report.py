@@ -1,0 +1,234 @@
+"""Files written by ``torch-ampn test`` and ``predict``: RMSE table, plots, XDMF rollouts."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.training.items import RolloutItem
+
+
+def _figure():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _savefig(fig, path: Path, dpi: int = 110) -> None:
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=dpi)
+    os.replace(tmp, path)
+
+
+def plot_final_shapes(path: Path, traj: Trajectory, pred: Tensor, title: str) -> None:
+    """Predicted vs true final shape of the bottom ply (seen from below), coloured by e3 displacement."""
+    from torch_ampn.viz import plot_laminate
+
+    plt = _figure()
+    ply = traj.ply_mask
+    u3_true = traj.pos[-1, :, 2] - traj.pos[0, :, 2]
+    u3_pred = pred[-1, :, 2] - traj.pos[0, :, 2]
+    vmin = float(torch.minimum(u3_true[ply].min(), u3_pred[ply].min()))
+    fig = plt.figure(figsize=(13, 5.5))
+    last = None
+    for j, (label, pos, u3) in enumerate((("predicted", pred[-1], u3_pred), ("true", traj.pos[-1], u3_true))):
+        ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+        last = plot_laminate(
+            ax, pos, traj.cells, traj.node_type, u3, vmin, 0.0, show_tools=False, components=[0]
+        )
+        ax.view_init(elev=28, azim=-62)
+        ax.set_title(f"{label}: final step {traj.num_steps}, bottom ply")
+    fig.colorbar(last, ax=fig.axes, shrink=0.6, label="e3 displacement [mm]")
+    fig.suptitle(title)
+    _savefig(fig, path)
+    plt.close(fig)
+
+
+class TestReport:
+    """Collects per-trajectory rollout errors and writes the test outputs into ``folder``.
+
+    Files: ``test_rmse.csv`` (one row per trajectory: model and baseline RMSE in mm,
+    averaged over steps, and the rollout time), ``test_summary.json``,
+    ``rmse_over_time.png``, ``final_shape_<name>.png`` (first trajectory) and, with
+    ``xdmf``, ``xdmf/<name>.xdmf`` (true and predicted displacement, error field).
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self.rows: list[dict] = []
+        self.curves: dict[str, list[Tensor]] = {}
+
+    def add(
+        self,
+        item: RolloutItem,
+        pred: Tensor,
+        rmse: Tensor,
+        baselines: dict[str, Tensor],
+        seconds: float,
+        xdmf: bool = True,
+    ) -> None:
+        """Record one test trajectory (and write its XDMF file, and the shape figure for the first)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        row = {"trajectory": item.name, "model": float(rmse[1:].mean())}
+        row.update({name: float(curve[1:].mean()) for name, curve in baselines.items()})
+        row["rollout_seconds"] = seconds
+        self.rows.append(row)
+        for name, curve in {"model": rmse, **baselines}.items():
+            self.curves.setdefault(name, []).append(curve)
+        if xdmf:
+            from torch_ampn.data.meshio_io import export_xdmf
+
+            export_xdmf(item.trajectory, self.folder / "xdmf" / f"{item.name}.xdmf", predicted_pos=pred)
+        if len(self.rows) == 1:
+            plot_final_shapes(
+                self.folder / f"final_shape_{item.name}.png",
+                item.trajectory,
+                pred,
+                f"{item.name}: rollout RMSE {row['model']:.3f} mm (averaged over steps)",
+            )
+
+    def summary(self) -> dict[str, float]:
+        """Means over trajectories: model, static, best rigid and best baseline RMSE, and the ratio."""
+        mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in self.rows[0] if k != "trajectory"}
+        rigid = {k: v for k, v in mean.items() if k.startswith("rigid")}
+        best_rigid = min(rigid, key=rigid.get) if rigid else None
+        baseline = min(mean["static"], rigid[best_rigid] if best_rigid else float("inf"))
+        out = {
+            "rollout_rmse": mean["model"],
+            "static_rmse": mean["static"],
+            "baseline_rmse": baseline,
+            "improvement_over_baseline": baseline / max(mean["model"], 1e-12),
+            "rollout_seconds": mean["rollout_seconds"],
+        }
+        if best_rigid:
+            out["rigid_rmse"] = rigid[best_rigid]
+            out["rigid_touch_radius"] = float(best_rigid.removeprefix("rigid_r"))
+        return out
+
+    def table(self) -> str:
+        """The per-trajectory table and the mean row, as printed text."""
+        keys = [k for k in self.rows[0] if k != "trajectory"]
+        head = f"{'trajectory':<16}" + "".join(f"{k:>16}" for k in keys)
+        lines = [head, "-" * len(head)]
+        for r in self.rows:
+            lines.append(f"{r['trajectory']:<16}" + "".join(f"{r[k]:>16.4f}" for k in keys))
+        mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in keys}
+        lines.append("-" * len(head))
+        lines.append(f"{'mean':<16}" + "".join(f"{mean[k]:>16.4f}" for k in keys))
+        return "\n".join(lines)
+
+    def finish(self) -> dict[str, float]:
+        """Write CSV, summary JSON and the RMSE-over-time plot; print the table; return the summary."""
+        if not self.rows:
+            raise RuntimeError("no test trajectories were rolled out")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / "test_rmse.csv"
+        tmp = path.with_name(f".{path.name}.tmp")
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(self.rows[0]))
+            writer.writeheader()
+            writer.writerows(self.rows)
+        os.replace(tmp, path)
+        summary = self.summary()
+        _atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
+        self.plot_over_time(self.folder / "rmse_over_time.png", summary)
+        print("\nRollout RMSE [mm] over ply nodes, averaged over steps (model vs trivial baselines):")
+        print(self.table())
+        rigid = (
+            f", rigid with punch (touch radius {summary['rigid_touch_radius']:g} mm) "
+            f"{summary['rigid_rmse']:.4f} mm"
+            if "rigid_rmse" in summary
+            else ""
+        )
+        print(
+            f"model {summary['rollout_rmse']:.4f} mm vs best trivial baseline "
+            f"{summary['baseline_rmse']:.4f} mm "
+            f"(static {summary['static_rmse']:.4f} mm{rigid}): "
+            f"{summary['improvement_over_baseline']:.1f}x lower"
+        )
+        print(f"wrote {path}, {self.folder / 'rmse_over_time.png'} and more in {self.folder}")
+        return summary
+
+    def plot_over_time(self, path: Path, summary: dict[str, float]) -> None:
+        """Mean RMSE per step of the model and the baselines (thin lines: single trajectories)."""
+        plt = _figure()
+        fig, ax = plt.subplots(figsize=(7.5, 4.5))
+        names = ["model", "static"]
+        if "rigid_touch_radius" in summary:
+            names.append(f"rigid_r{summary['rigid_touch_radius']:g}")
+        for name, color in zip(names, ("C0", "C1", "C2"), strict=False):
+            curves = torch.stack(self.curves[name])  # [n, T+1]
+            steps = torch.arange(curves.size(1))
+            for c in curves:
+                ax.plot(steps, c, color=color, alpha=0.25, lw=0.8)
+            ax.plot(steps, curves.mean(0), color=color, lw=2, label=name)
+        ax.set_xlabel("step")
+        ax.set_ylabel("RMSE over ply nodes [mm]")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        ax.set_title("Autoregressive rollout error on the test trajectories")
+        fig.tight_layout()
+        _savefig(fig, path)
+        plt.close(fig)
+
+
+def write_prediction(
+    folder: Path, item: RolloutItem, pred: Tensor, seconds: float, xdmf: bool = True
+) -> None:
+    """Outputs of ``predict`` for one process setting: XDMF of the predicted rollout, a PNG, a JSON line."""
+    from torch_ampn.viz import plot_laminate
+
+    folder.mkdir(parents=True, exist_ok=True)
+    predicted = dataclasses.replace(item.trajectory, pos=pred.to(item.trajectory.pos.dtype))
+    if xdmf:
+        from torch_ampn.data.meshio_io import export_xdmf
+
+        export_xdmf(predicted, folder / f"{item.name}.xdmf")
+    plt = _figure()
+    u3 = predicted.pos[-1, :, 2] - predicted.pos[0, :, 2]
+    fig = plt.figure(figsize=(7, 5.5))
+    ax = fig.add_subplot(1, 1, 1, projection="3d")
+    last = plot_laminate(
+        ax,
+        predicted.pos[-1],
+        predicted.cells,
+        predicted.node_type,
+        u3,
+        None,
+        0.0,
+        show_tools=False,
+        components=[0],
+    )
+    ax.view_init(elev=28, azim=-62)
+    forces = ", ".join(f"{f:.0f}" for f in item.trajectory.gripper_force.tolist())
+    where = ", ".join(f"{w:.2f}" for w in item.trajectory.meta.get("gripper_edge_fraction", []))
+    ax.set_title(f"{item.name}: predicted final shape (bottom ply)\ngrippers at {where}, forces {forces} N")
+    fig.colorbar(last, ax=ax, shrink=0.6, label="e3 displacement [mm]")
+    _savefig(fig, folder / f"{item.name}.png")
+    plt.close(fig)
+    info = dict(
+        name=item.name,
+        gripper_edge_fraction=item.trajectory.meta.get("gripper_edge_fraction"),
+        gripper_force=item.trajectory.gripper_force.tolist(),
+        rollout_seconds=seconds,
+        max_e3_displacement_mm=float(-u3[predicted.ply_mask].min()),
+    )
+    _atomic_write_text(folder / f"{item.name}.json", json.dumps(info, indent=2))
+    print(f"predict {item.name}: {folder / (item.name + '.png')} ({seconds:.1f} s rollout)")
