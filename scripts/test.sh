@@ -10,4 +10,4 @@ echo "[test] ruff check"
 ruff check .
 echo "[test] pytest"
 export MPLBACKEND=Agg
-python -m pytest "$@"
+python -m pytest --nbmake tests examples/notebooks "$@"

@@ -81,3 +81,63 @@ def plot_laminate(
     ax.set_ylabel("e2 [mm]")
     ax.set_zlabel("e3 [mm]")
     return last
+
+
+def _draw_level(
+    ax: Any, pos: Tensor, edge_index: Tensor, keep: Tensor, title: str, extent: Tensor
+) -> None:
+    """Draw nodes ``keep`` (bool [N]) of a level and the mesh edges among them, in the e1-e2 plane."""
+    from matplotlib.collections import LineCollection
+
+    src, dst = edge_index
+    sel = keep[src] & keep[dst] & (src < dst)
+    segments = torch.stack([pos[src[sel], :2], pos[dst[sel], :2]], 1).numpy()
+    ax.add_collection(LineCollection(segments, linewidths=0.3, colors="0.55"))
+    ax.scatter(pos[keep, 0], pos[keep, 1], s=2 if keep.sum() > 500 else 8, c="tab:blue", zorder=3)
+    ax.set_title(title, fontsize=9)
+    margin = 0.03 * (extent[1] - extent[0])
+    ax.set_xlim(float(extent[0, 0] - margin[0]), float(extent[1, 0] + margin[0]))
+    ax.set_ylim(float(extent[0, 1] - margin[1]), float(extent[1, 1] + margin[1]))
+    ax.set_aspect("equal")
+
+
+def plot_hierarchy_levels(
+    hierarchy: Any, pos: Tensor, component: Tensor, names: list[str] | None = None, component_id: int = 0
+) -> Any:
+    """Figure of one component on every level of a hierarchy, plus the down edges of one coarse node.
+
+    Args:
+        hierarchy: A :class:`~torch_ampn.data.HierarchicalData` of the mesh.
+        pos: Fine node positions ``[N, 3]`` (drawn in the e1-e2 plane).
+        component: Component id of every fine node ``[N]``.
+        names: Component names (for titles).
+        component_id: The component to draw.
+
+    Returns:
+        The matplotlib figure (one panel per level).
+    """
+    import matplotlib.pyplot as plt
+
+    h = hierarchy
+    name = names[component_id] if names else f"component {component_id}"
+    fig, axes = plt.subplots(1, h.num_levels, figsize=(3.2 * h.num_levels, 3.4), squeeze=False)
+    axes = axes[0]
+    own = pos[component == component_id, :2]
+    extent = torch.stack([own.min(0).values, own.max(0).values])
+    for k, ax in enumerate(axes):
+        fine = h.fine_index(k)
+        keep = component[fine] == component_id
+        _draw_level(
+            ax, pos[fine], h.mesh(k).edge_index, keep, f"level {k}: {int(keep.sum())} nodes in {name}", extent
+        )
+    if h.num_levels > 1:
+        # the fine nodes that the coarse node nearest the component's centre collects from
+        centre = extent.mean(0)
+        coarse = h.fine_index(1)
+        inside = component[coarse] == component_id
+        c = int(torch.where(inside, (pos[coarse, :2] - centre).norm(dim=1), torch.inf).argmin())
+        src, dst = h.down(0).edge_index
+        sources = src[dst == c]
+        axes[0].scatter(*pos[sources, :2].T, s=10, c="tab:red", zorder=4, label="down edges of one l1 node")
+        axes[0].legend(loc="lower left", fontsize=7)
+    return fig
