@@ -97,7 +97,9 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--resolution", choices=("coarse", "paper"), default="paper")
     parser.add_argument("--steps", type=int, default=50)
@@ -114,7 +116,8 @@ def main() -> None:
     head += f"{'contact [ms/step]':>18} {'predict [ms/step]':>18}"
     print(head)
     print(
-        f"{result['resolution']:>10} {result['nodes']:>7} {result['device'][:24]:>24} {result['compile']!s:>7} "
+        f"{result['resolution']:>10} {result['nodes']:>7} {result['device'][:24]:>24} "
+        f"{result['compile']!s:>7} "
         f"{result['bf16']!s:>5} {result['rollout_s']:>12.3f} {result['contact_ms_per_step']:>18.1f} "
         f"{result['predict_ms_per_step']:>18.1f}"
     )

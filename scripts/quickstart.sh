@@ -17,7 +17,7 @@ start=$SECONDS
 echo "[quickstart] torch-ampn fit (generates data/default on first use)"
 torch-ampn fit --config "$config" "$@"
 echo "[quickstart] torch-ampn test"
-torch-ampn test --config "$config" --ckpt_path outputs/quickstart/checkpoints/last.ckpt
+torch-ampn test --config "$config" --ckpt_path outputs/quickstart/checkpoints/best.ckpt
 echo "[quickstart] AMG hierarchy of the paper-sized laminate mesh -> outputs/hierarchy_levels.png"
 python examples/hierarchy_levels.py --out outputs --cache-dir outputs/cache
 echo "[quickstart] done in $((SECONDS - start)) s; results in outputs/quickstart"

@@ -111,6 +111,7 @@ def test_training_noise_has_the_requested_size_on_plies_only(data_dir):
     module, dm = _fitted_module(data_dir, position_noise=1e-2, residual_noise=1e-3)
     window = dm.train_dataset[3]
     clean_pos, clean_prev = window["l0"].pos.clone(), window["l0"].prev_disp.clone()
+    clean_target = window["l0"].target.clone()
     torch.manual_seed(0)
     noisy = module.add_training_noise(window)
     ply = noisy["l0"].ply_mask
@@ -121,6 +122,8 @@ def test_training_noise_has_the_requested_size_on_plies_only(data_dir):
     assert torch.equal(dprev[~ply], torch.zeros_like(dprev[~ply]))
     assert float(dpos[ply].std()) == pytest.approx(1e-2 * sigma, rel=0.15)
     assert float(dprev[ply].std()) == pytest.approx(1e-3 * sigma, rel=0.15)
+    # the target still leads to the true next position: (x^{t-1} + eps) + target' = x^t
+    torch.testing.assert_close(noisy["l0"].pos + noisy["l0"].target, clean_pos + clean_target)
 
 
 def test_robin_mode_trains_and_samples(data_dir):

@@ -2,7 +2,7 @@
 
     torch-ampn fit --config examples/configs/quickstart.yaml
     torch-ampn test --config examples/configs/quickstart.yaml \
-        --ckpt_path outputs/quickstart/checkpoints/last.ckpt
+        --ckpt_path outputs/quickstart/checkpoints/best.ckpt
     torch-ampn predict --ckpt_path CKPT --data.predict_file settings.yaml
 
 The model's contact settings and level count are linked into the data module (the

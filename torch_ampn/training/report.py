@@ -160,7 +160,7 @@ class TestReport:
             f"model {summary['rollout_rmse']:.4f} mm vs best trivial baseline "
             f"{summary['baseline_rmse']:.4f} mm "
             f"(static {summary['static_rmse']:.4f} mm{rigid}): "
-            f"{summary['improvement_over_baseline']:.1f}x lower"
+            f"{summary['improvement_over_baseline']:.2f}x lower"
         )
         print(f"wrote {path}, {self.folder / 'rmse_over_time.png'} and more in {self.folder}")
         return summary
