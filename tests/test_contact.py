@@ -353,8 +353,15 @@ def test_transform_fills_every_level_from_root_positions():
 
 def test_transform_level_radius_scale():
     h = _hierarchy()
-    for scale, radii in [(None, [0.6, 0.6, 0.6]), (2.0, [0.6, 1.2, 2.4]), ([1.0, 1.5, 3.0], [0.6, 0.9, 1.8])]:
-        transform = ComponentRadiusGraph(r=0.6, k=1, level_radius_scale=scale)
+    cases = [
+        (None, [0.6, 0.6, 0.6], False),
+        (None, [0.6, 0.6, 0.6], True),  # one search over all levels
+        ([1.0, 1.0, 1.0], [0.6, 0.6, 0.6], True),
+        (2.0, [0.6, 1.2, 2.4], True),  # different radii: one search per level
+        ([1.0, 1.5, 3.0], [0.6, 0.9, 1.8], False),
+    ]
+    for scale, radii, merge in cases:
+        transform = ComponentRadiusGraph(r=0.6, k=1, level_radius_scale=scale, merge_levels=merge)
         out = transform(h)
         for level, radius in enumerate(radii):
             assert math.isclose(transform.level_radius(level), radius)
@@ -370,8 +377,13 @@ def test_transform_level_radius_scale():
 def test_transform_on_a_batch_equals_the_single_results():
     h1, h2 = _hierarchy(seed=1), _hierarchy(nx=10, ny=9, layers=2, seed=2)
     transform = ComponentRadiusGraph(r=0.9, k=3, num_components=3, static=True)
+    merged = ComponentRadiusGraph(r=0.9, k=3, num_components=3, static=True, merge_levels=True)
     singles = [transform(h1), transform(h2)]
     batch = transform(Batch.from_data_list([h1, h2]))
+    batch_merged = merged(Batch.from_data_list([h1, h2]))
+    for level in range(3):
+        assert torch.equal(batch_merged.level(level).contact_nbr, batch.level(level).contact_nbr)
+        assert torch.equal(batch_merged.contact(level).edge_index, batch.contact(level).edge_index)
     for level in range(3):
         offset = singles[0].level(level).num_nodes
         expected = torch.cat(
@@ -392,7 +404,7 @@ def test_transform_static_tables_and_repr():
         assert torch.equal(table_to_edge_index(nbr, mask), out.contact(level).edge_index)
     assert repr(ComponentRadiusGraph()) == (
         "ComponentRadiusGraph(r=3.0, k=3, level_radius_scale=None, num_components=None, "
-        "static=False, backend='auto')"
+        "static=False, backend='auto', merge_levels=False)"
     )
 
 

