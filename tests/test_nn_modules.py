@@ -68,3 +68,16 @@ def test_normalizer_freeze_and_state_dict():
     torch.testing.assert_close(other(x), before)
     with pytest.raises(ValueError, match="features"):
         Normalizer(3).update(torch.ones(2, 2))
+
+
+def test_normalizer_without_centering_only_scales():
+    g = torch.Generator().manual_seed(1)
+    data = 2.0 + 3.0 * torch.randn(500, 2, generator=g, dtype=torch.float64)
+    norm = Normalizer(2, center=False)
+    norm.update(data)
+    std = data.std(0, unbiased=False)
+    torch.testing.assert_close(norm.mean, data.mean(0))  # statistics are still kept
+    torch.testing.assert_close(norm(data), data / std)
+    torch.testing.assert_close(norm(torch.zeros(1, 2, dtype=torch.float64)), torch.zeros(1, 2, dtype=torch.float64))
+    torch.testing.assert_close(norm.denormalize(norm(data)), data)
+    assert "center=False" in repr(norm)

@@ -315,3 +315,28 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
         assert (predicted / name).is_file(), name
     info = json.loads((predicted / "wide.json").read_text())
     assert info["gripper_force"] == [90.0, 10.0]
+
+
+def test_change_target_statistics_and_prediction_by_hand(data_dir, monkeypatch):
+    """predict_change: statistics of du^t - du^{t-1}; a zero network output keeps the last residual."""
+    module, dm = _fitted_module(data_dir, predict_change=True, center_target=False)
+    s = module.surrogate
+    windows = list(dm.statistics_samples(8))
+    change = torch.cat([(w["l0"].target - w["l0"].prev_disp)[w["l0"].ply_mask] for w in windows]).double()
+    torch.testing.assert_close(s.target_norm.mean, change.mean(0))
+    torch.testing.assert_close(s.target_norm.std, change.std(0, unbiased=False))
+    data = windows[-1]
+    n = data["l0"].num_nodes
+    monkeypatch.setattr(s.diffusion, "sample", lambda *a, **k: torch.zeros(n, 3))
+    torch.testing.assert_close(s.predict_residual(data), data["l0"].prev_disp)
+    ones = torch.ones(n, 3)
+    monkeypatch.setattr(s.diffusion, "sample", lambda *a, **k: ones)
+    expected = data["l0"].prev_disp + s.target_norm.std.float()  # scale only, no mean shift
+    torch.testing.assert_close(s.predict_residual(data), expected)
+    # the loss is the MSE against the normalised change on ply nodes (K = 1: the network output itself)
+    captured = {}
+    monkeypatch.setattr(s.diffusion, "loss", lambda target, *a, **k: captured.setdefault("t", target).sum())
+    s.loss(data)
+    ply = data["l0"].ply_mask
+    want = ((data["l0"].target - data["l0"].prev_disp) / s.target_norm.std.float())[ply]
+    torch.testing.assert_close(captured["t"][ply], want)

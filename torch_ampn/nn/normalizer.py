@@ -20,9 +20,14 @@ class Normalizer(nn.Module):
     e.g. a one-hot class that never occurs, or tool motion on plies only) is divided by 1
     instead, i.e. only centred, so that an unseen value at test time is not blown up.
 
+    With ``center=False`` the normaliser only scales, :math:`x / \sigma`: zero stays zero. The
+    surrogate uses this for its target, so that a node the network leaves alone (output 0)
+    does not move, rather than moving by the mean training residual.
+
     Args:
         num_features: Number of features ``F`` (the last dimension).
         eps: Standard deviations below this are replaced by 1.
+        center: Subtract the mean (standardise) or only divide by the standard deviation.
 
     Shapes:
         - **input:** :math:`(*, F)`
@@ -34,10 +39,11 @@ class Normalizer(nn.Module):
     running_m2: Tensor
     frozen: Tensor
 
-    def __init__(self, num_features: int, eps: float = 1e-8) -> None:
+    def __init__(self, num_features: int, eps: float = 1e-8, center: bool = True) -> None:
         super().__init__()
         self.num_features = num_features
         self.eps = eps
+        self.center = center
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
         self.register_buffer("running_mean", torch.zeros(num_features, dtype=torch.float64))
         self.register_buffer("running_m2", torch.zeros(num_features, dtype=torch.float64))
@@ -87,17 +93,23 @@ class Normalizer(nn.Module):
         std = (self.running_m2 / self.count.clamp(min=1.0)).sqrt()  # population std
         return torch.where(std < self.eps, torch.ones_like(std), std)
 
+    @property
+    def shift(self) -> Tensor:
+        """What :meth:`normalize` subtracts ``[F]``: the mean, or zeros when ``center=False``."""
+        return self.running_mean if self.center else torch.zeros_like(self.running_mean)
+
     def normalize(self, x: Tensor) -> Tensor:
-        """``(x - mean) / std``: ``[*, F] -> [*, F]`` in ``x``'s dtype."""
-        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+        """``(x - shift) / std``: ``[*, F] -> [*, F]`` in ``x``'s dtype."""
+        return (x - self.shift.to(x.dtype)) / self.std.to(x.dtype)
 
     def denormalize(self, x: Tensor) -> Tensor:
-        """``x * std + mean``, the inverse of :meth:`normalize`."""
-        return x * self.std.to(x.dtype) + self.mean.to(x.dtype)
+        """``x * std + shift``, the inverse of :meth:`normalize`."""
+        return x * self.std.to(x.dtype) + self.shift.to(x.dtype)
 
     def forward(self, x: Tensor) -> Tensor:
         """Same as :meth:`normalize`."""
         return self.normalize(x)
 
     def __repr__(self) -> str:
-        return f"{self.__class__.__name__}({self.num_features}, eps={self.eps})"
+        center = "" if self.center else ", center=False"
+        return f"{self.__class__.__name__}({self.num_features}, eps={self.eps}{center})"

@@ -51,6 +51,13 @@ class AMPNSurrogate(nn.Module):
         level_radius_scale: Per-level radius scale of the contact edges (see
             :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
         gripper_alpha: Distance decay :math:`\alpha` of the gripper features.
+        center_target: Standardise the target residual (subtract its training mean) or only
+            scale it, so that a zero network output means "this node stays where it is".
+        predict_change: Let the network predict the change of the residual,
+            :math:`\Delta u^t - \Delta u^{t-1}` (normalised with its own statistics), and add the
+            previous residual back (:meth:`predict_residual` always returns :math:`\Delta u^t`).
+            A zero output then means "keep moving as in the last step", as MeshGraphNets'
+            acceleration targets do. ``False`` is the paper's residual target.
     """
 
     def __init__(
@@ -70,6 +77,8 @@ class AMPNSurrogate(nn.Module):
         contact_k: int = 3,
         level_radius_scale: float | Sequence[float] | None = None,
         gripper_alpha: float = 3e-2,
+        center_target: bool = True,
+        predict_change: bool = False,
     ) -> None:
         super().__init__()
         if num_components < 2:
@@ -80,6 +89,7 @@ class AMPNSurrogate(nn.Module):
         self.num_grippers = num_grippers
         self.num_levels = num_levels
         self.gripper_alpha = gripper_alpha
+        self.predict_change = predict_change
         self.contact = ComponentRadiusGraph(
             contact_radius, contact_k, level_radius_scale=level_radius_scale, num_components=num_components
         )
@@ -102,7 +112,7 @@ class AMPNSurrogate(nn.Module):
             {"fine": Normalizer(fine_in), "coarse": Normalizer(num_coarse_node_features())}
         )
         self.edge_norm = nn.ModuleDict({rel: Normalizer(num_edge_features(rel)) for rel in RELATIONS})
-        self.target_norm = Normalizer(3)
+        self.target_norm = Normalizer(3, center=center_target)
         self.position_norm = Normalizer(3)
 
     @property
@@ -136,7 +146,7 @@ class AMPNSurrogate(nn.Module):
         for (_, rel, _), e in e_dict.items():
             self.edge_norm[rel].update(e)
         fine = data["l0"]
-        self.target_norm.update(fine.target[fine.ply_mask])
+        self.target_norm.update(self._network_target(fine)[fine.ply_mask])
         self.position_norm.update(fine.pos)
 
     def freeze_statistics(self) -> None:
@@ -179,6 +189,10 @@ class AMPNSurrogate(nn.Module):
         return {level_name(k): data[level_name(k)].batch for k in range(num_levels)}
 
     # ---- training and inference -------------------------------------------------------
+    def _network_target(self, fine) -> Tensor:
+        """What the network learns, in mm ``[N_0, 3]``: the residual, or its change (``predict_change``)."""
+        return fine.target - fine.prev_disp if self.predict_change else fine.target
+
     def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
         """Training loss on the ply nodes of a window (batch): MSE on the normalised residual (ROBIN: on v).
 
@@ -186,7 +200,7 @@ class AMPNSurrogate(nn.Module):
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
         fine = data["l0"]
-        target = self.target_norm(fine.target)
+        target = self.target_norm(self._network_target(fine))
         return self.diffusion.loss(
             target,
             x_dict,
@@ -204,11 +218,15 @@ class AMPNSurrogate(nn.Module):
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
         out = self.diffusion.sample(x_dict, index_dict, e_dict, generator=generator)
-        return self.target_norm.denormalize(out.float())
+        residual = self.target_norm.denormalize(out.float())
+        if self.predict_change:
+            residual = residual + data["l0"].prev_disp.to(residual.dtype)
+        return residual
 
     def extra_repr(self) -> str:
         """Data sizes shown by ``repr``."""
         return (
             f"num_components={self.num_components}, num_grippers={self.num_grippers}, "
             f"diffusion_steps={self.diffusion_steps}"
+            + (", predict_change=True" if self.predict_change else "")
         )

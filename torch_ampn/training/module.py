@@ -52,6 +52,11 @@ class AMPNLightningModule(L.LightningModule):
         diffusion_steps: ROBIN's ``K`` (1 = AMPN).
         contact_radius: Contact radius (mm); the data module builds training contact edges with it.
         contact_k: Contact neighbours per other component.
+        center_target: Standardise the target residual (``True``) or only scale it (``False``:
+            zero output = node at rest; see :class:`~torch_ampn.nn.AMPNSurrogate`).
+        predict_change: The network predicts the change of the residual (MeshGraphNets-style
+            acceleration target) instead of the residual (the paper's target); see
+            :class:`~torch_ampn.nn.AMPNSurrogate`.
         lr: Peak learning rate (paper: 1e-4).
         final_lr: Learning rate at the last step (paper: 1e-5).
         warmup_steps: Linear warm-up steps (paper: 1,000).
@@ -82,6 +87,8 @@ class AMPNLightningModule(L.LightningModule):
         diffusion_steps: int = 1,
         contact_radius: float = 3.0,
         contact_k: int = 3,
+        center_target: bool = True,
+        predict_change: bool = False,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
@@ -110,6 +117,8 @@ class AMPNLightningModule(L.LightningModule):
             diffusion_steps=diffusion_steps,
             contact_radius=contact_radius,
             contact_k=contact_k,
+            center_target=center_target,
+            predict_change=predict_change,
         )
         self._report: TestReport | None = None
 
