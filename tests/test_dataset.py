@@ -82,3 +82,32 @@ def test_samples_batch_with_pyg_dataloader(root):
     assert batch.gripper_pos.shape == (3, 1, 3)
     assert torch.equal(batch.step, torch.tensor([1, 2, 3]))
     assert list((root / "cache").glob("hierarchy-*.pt"))
+
+
+def test_cached_samples_are_built_once_and_equal_fresh_ones(root):
+    from torch_ampn.transforms import ComponentRadiusGraph
+
+    calls = []
+    contact = ComponentRadiusGraph(r=5.0, k=2)
+
+    def counting(data):
+        calls.append(1)
+        return contact(data)
+
+    cached = StepDataset(
+        root, "train", cache_dir=None, min_coarse_nodes=2, transform=counting, cache_samples=True
+    )
+    fresh = StepDataset(root, "train", cache_dir=None, min_coarse_nodes=2, transform=contact)
+    for _ in range(2):  # two epochs
+        batches = list(DataLoader(cached, batch_size=1, shuffle=True))
+    assert len(calls) == len(cached)  # the second epoch built nothing
+    for i in range(len(cached)):
+        a, b = cached[i], fresh[i]
+        for key in b.edge_types:
+            assert torch.equal(a[key].edge_index, b[key].edge_index)
+        assert torch.equal(a["l0"].pos, b["l0"].pos) and torch.equal(a["l0"].target, b["l0"].target)
+    # training noise replaces a batch's tensors; the cached windows keep theirs
+    batch = batches[0]
+    i = int(batch.traj_index) * 4 + int(batch.step) - 1
+    batch["l0"].pos = batch["l0"].pos + 1.0
+    assert torch.equal(cached[i]["l0"].pos, fresh[i]["l0"].pos)

@@ -78,6 +78,8 @@ def test_normalizer_without_centering_only_scales():
     std = data.std(0, unbiased=False)
     torch.testing.assert_close(norm.mean, data.mean(0))  # statistics are still kept
     torch.testing.assert_close(norm(data), data / std)
-    torch.testing.assert_close(norm(torch.zeros(1, 2, dtype=torch.float64)), torch.zeros(1, 2, dtype=torch.float64))
+    torch.testing.assert_close(
+        norm(torch.zeros(1, 2, dtype=torch.float64)), torch.zeros(1, 2, dtype=torch.float64)
+    )
     torch.testing.assert_close(norm.denormalize(norm(data)), data)
     assert "center=False" in repr(norm)

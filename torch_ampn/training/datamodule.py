@@ -60,6 +60,10 @@ class AMPNDataModule(L.LightningDataModule):
         contact_radius: Contact radius of training windows (linked to the model's).
         contact_k: Contact neighbours per other component (linked to the model's).
         limit_val_trajectories: Use only the first ones of the validation split (rollouts are costly).
+        cache_windows: Keep the training windows with their contact edges in memory after the
+            first epoch (:class:`~torch_ampn.data.StepDataset`'s ``cache_samples``); saves the
+            contact search of every later epoch, costs memory (~60 kB per window on the coarse
+            default mesh, a few MB on the paper's), per data-loader worker.
         predict_file: Process settings to predict (JSON/YAML list).
         predict_gripper_positions: Or: one list of gripper edge fractions per setting.
         predict_gripper_forces: And: one list of gripper forces (N) per setting.
@@ -82,6 +86,7 @@ class AMPNDataModule(L.LightningDataModule):
         contact_radius: float = 3.0,
         contact_k: int = 3,
         limit_val_trajectories: int | None = None,
+        cache_windows: bool = False,
         predict_file: str | None = None,
         predict_gripper_positions: list[list[float]] | None = None,
         predict_gripper_forces: list[list[float]] | None = None,
@@ -158,6 +163,7 @@ class AMPNDataModule(L.LightningDataModule):
                 max_levels=hp.max_levels,
                 min_coarse_nodes=hp.min_coarse_nodes,
                 transform=self.contact,
+                cache_samples=hp.cache_windows,
             )
         if stage in ("fit", "validate"):
             self._splits["val"] = self._rollout_split("val", hp.limit_val_trajectories)
