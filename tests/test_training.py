@@ -340,3 +340,50 @@ def test_change_target_statistics_and_prediction_by_hand(data_dir, monkeypatch):
     ply = data["l0"].ply_mask
     want = ((data["l0"].target - data["l0"].prev_disp) / s.target_norm.std.float())[ply]
     torch.testing.assert_close(captured["t"][ply], want)
+
+
+class _RecordParameters(L.Callback):
+    """Parameters after every optimiser step."""
+
+    def __init__(self):
+        self.steps = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.steps.append({n: p.detach().clone() for n, p in pl_module.named_parameters()})
+
+
+def _fit_three_steps(data_dir, callbacks):
+    L.seed_everything(0)
+    module = AMPNLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2)
+    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, batch_size=2)
+    trainer = L.Trainer(
+        max_steps=3,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        callbacks=callbacks,
+    )
+    trainer.fit(module, datamodule=dm)
+    return module
+
+
+def test_ema_weight_averaging_keeps_statistics_and_averages_by_hand(data_dir):
+    from lightning.pytorch.callbacks import EMAWeightAveraging
+
+    record = _RecordParameters()
+    plain = _fit_three_steps(data_dir, [record])
+    assert len(record.steps) == 3
+    averaged = _fit_three_steps(data_dir, [EMAWeightAveraging(decay=0.5)])
+    # EMA by hand: the first update copies, then a <- 0.5 a + 0.5 theta
+    for name, p in averaged.named_parameters():
+        a = record.steps[0][name]
+        for theta in record.steps[1:]:
+            a = 0.5 * a + 0.5 * theta[name]
+        torch.testing.assert_close(p.detach(), a, rtol=1e-6, atol=1e-7)
+    # the normalisation statistics (buffers) survive the averaging exactly
+    for (name, b_plain), (_, b_avg) in zip(plain.named_buffers(), averaged.named_buffers(), strict=True):
+        assert torch.equal(b_plain, b_avg), name
+    assert averaged.surrogate.statistics_frozen
