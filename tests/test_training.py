@@ -38,6 +38,20 @@ def _datamodule(data_dir, **kwargs):
     return dm
 
 
+def _quiet_trainer(max_steps, callbacks=None):
+    """A CPU trainer without logger, checkpoints, progress bar or validation."""
+    return L.Trainer(
+        max_steps=max_steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        callbacks=callbacks,
+    )
+
+
 def _fitted_module(data_dir, **kwargs):
     module = AMPNLightningModule(**SMALL_MODEL, **kwargs)
     dm = _datamodule(data_dir)
@@ -143,15 +157,7 @@ def test_robin_mode_trains_and_samples(data_dir):
 
 def test_checkpoint_round_trip_gives_identical_rollouts(data_dir, tmp_path):
     module, dm = _fitted_module(data_dir)
-    trainer = L.Trainer(
-        max_steps=2,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_val_batches=0,
-        accelerator="cpu",
-    )
+    trainer = _quiet_trainer(max_steps=2)
     trainer.fit(module, datamodule=dm)
     path = tmp_path / "model.ckpt"
     trainer.save_checkpoint(path)
@@ -356,16 +362,7 @@ def _fit_three_steps(data_dir, callbacks):
     L.seed_everything(0)
     module = AMPNLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2)
     dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, batch_size=2)
-    trainer = L.Trainer(
-        max_steps=3,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_val_batches=0,
-        accelerator="cpu",
-        callbacks=callbacks,
-    )
+    trainer = _quiet_trainer(max_steps=3, callbacks=callbacks)
     trainer.fit(module, datamodule=dm)
     return module
 
