@@ -13,6 +13,7 @@ from torch_ampn.nn import (
     geometric_beta_schedule,
     hierarchical_features,
     num_fine_node_features,
+    pointwise_loss,
 )
 from torch_ampn.testing import toy_hierarchy
 
@@ -147,3 +148,37 @@ def test_multi_step_needs_step_conditioning():
         DiffusionAMPN(make(0), num_steps=5)
     with pytest.raises(ValueError, match="noise input"):
         DiffusionAMPN(AMPN(10, hidden_channels=8, num_levels=1, noise_channels=0), num_steps=1)
+
+
+def test_pointwise_loss_by_hand():
+    e = torch.tensor([-3.0, -0.5, 0.0, 0.25, 0.5, 2.0], dtype=torch.float64)
+    torch.testing.assert_close(pointwise_loss(e), e * e)
+    # delta = 0.5: e^2 inside, 2 * 0.5 * |e| - 0.25 outside (continuous at |e| = 0.5)
+    want = torch.tensor([2.75, 0.25, 0.0, 0.0625, 0.25, 1.75], dtype=torch.float64)
+    torch.testing.assert_close(pointwise_loss(e, 0.5), want)
+    # twice torch's Huber loss, with gradient clipped at 2 delta
+    torch.testing.assert_close(pointwise_loss(e, 0.5), 2 * F.huber_loss(e, torch.zeros_like(e), "none", 0.5))
+    g = e.clone().requires_grad_(True)
+    pointwise_loss(g, 0.5).sum().backward()
+    torch.testing.assert_close(g.grad, torch.tensor([-1.0, -1.0, 0.0, 0.5, 1.0, 1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="huber_delta"):
+        pointwise_loss(e, 0.0)
+
+
+def test_k1_huber_loss_by_hand(toy):
+    h, x_dict, e_dict, target = toy
+    model = make()
+    diff = DiffusionAMPN(model, num_steps=1)
+    eps = torch.randn(target.shape, generator=torch.Generator().manual_seed(1))
+    pred = model(x_dict, h.edge_index_dict, e_dict, noise=eps)
+    err = (pred - target).double()
+    delta = float(err.abs().median())  # about half the entries on each branch
+    by_hand = torch.where(err.abs() <= delta, err * err, 2 * delta * err.abs() - delta * delta)
+    mask = h["l0"].node_type == 0
+    want, want_m = by_hand.mean(), by_hand[mask].mean()
+    args = (target, x_dict, h.edge_index_dict, e_dict)
+    loss = diff.loss(*args, noise=eps, huber_delta=delta)
+    loss_m = diff.loss(*args, noise=eps, node_mask=mask, huber_delta=delta)
+    torch.testing.assert_close(loss.double(), want, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(loss_m.double(), want_m, rtol=1e-5, atol=1e-7)
+    assert loss < F.mse_loss(pred, target)  # some errors exceed delta

@@ -348,6 +348,25 @@ def test_change_target_statistics_and_prediction_by_hand(data_dir, monkeypatch):
     torch.testing.assert_close(captured["t"][ply], want)
 
 
+def test_huber_loss_of_the_module_by_hand(data_dir):
+    """huber_delta: the loss is the Huber form of the squared error on the normalised ply residual."""
+    module, dm = _fitted_module(data_dir, huber_delta=0.05)
+    s = module.surrogate
+    data = list(dm.statistics_samples(8))[-1]
+    loss = s.loss(data, generator=torch.Generator().manual_seed(5))
+    x_dict, index_dict, e_dict = s.normalized_features(data)
+    target = s.target_norm(data["l0"].target)
+    noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        err = (s.model(x_dict, index_dict, e_dict, noise=noise) - target)[data["l0"].ply_mask].double()
+    a = err.abs()
+    want = torch.where(a <= 0.05, err * err, 0.1 * a - 0.0025).mean()
+    assert (a > 0.05).any() and (a <= 0.05).any()
+    torch.testing.assert_close(loss.double(), want, rtol=1e-5, atol=1e-8)
+    with pytest.raises(ValueError, match="huber_delta"):
+        AMPNLightningModule(**SMALL_MODEL, huber_delta=-1.0)
+
+
 class _RecordParameters(L.Callback):
     """Parameters after every optimiser step."""
 

@@ -1,7 +1,7 @@
 """Neural network layers and models: IntraLevelConv, InterLevelConv, AMPN and its ROBIN (diffusion) mode."""
 
 from torch_ampn.nn.ampn import AMPN
-from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule
+from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule, pointwise_loss
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.features import (
     coarse_node_features,
@@ -33,6 +33,7 @@ __all__ = [
     "edge_features",
     "fine_node_features",
     "geometric_beta_schedule",
+    "pointwise_loss",
     "gripper_features",
     "hierarchical_features",
     "node_type_one_hot",

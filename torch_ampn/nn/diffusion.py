@@ -40,6 +40,28 @@ from torch_ampn.nn.ampn import AMPN, EdgeType
 PAPER_NUM_STEPS = (1, 5, 10, 20)
 
 
+def pointwise_loss(error: Tensor, huber_delta: float | None = None) -> Tensor:
+    r"""Squared error, or with ``huber_delta`` its Huber form scaled to match it near zero.
+
+    :math:`e^2` for :math:`|e| \le \delta`, :math:`2 \delta |e| - \delta^2` beyond (continuous
+    with a continuous slope; twice :func:`torch.nn.functional.huber_loss`). Outliers then pull
+    with a bounded gradient :math:`2 \delta` instead of :math:`2 |e|`.
+
+    Args:
+        error: Any shape.
+        huber_delta: :math:`\delta > 0`; ``None``: plain squared error.
+
+    Returns:
+        Tensor of ``error``'s shape.
+    """
+    if huber_delta is None:
+        return error.square()
+    if huber_delta <= 0:
+        raise ValueError(f"huber_delta must be positive, got {huber_delta}")
+    a = error.abs()
+    return torch.where(a <= huber_delta, error.square(), 2.0 * huber_delta * a - huber_delta**2)
+
+
 def geometric_beta_schedule(
     num_steps: int, beta_min: float = 1e-4, beta_max: float = 1.0, dtype: torch.dtype = torch.float64
 ) -> Tensor:
@@ -115,6 +137,7 @@ class DiffusionAMPN(nn.Module):
         noise: Tensor | None = None,
         step: Tensor | None = None,
         generator: torch.Generator | None = None,
+        huber_delta: float | None = None,
     ) -> Tensor:
         r"""The training loss: MSE between predicted and true ``v`` at a random step per graph.
 
@@ -129,6 +152,8 @@ class DiffusionAMPN(nn.Module):
             noise: :math:`\epsilon` ``[N_0, C]``; drawn (first) from ``generator`` if ``None``.
             step: 0-based steps ``LongTensor[B]``; drawn (second) from ``generator`` if ``None``.
             generator: Random generator for ``noise`` and ``step``.
+            huber_delta: Use the Huber form of the squared error beyond this error
+                (:func:`pointwise_loss`); ``None``: plain MSE (the paper).
 
         Returns:
             Scalar loss (float32 or the autocast dtype's promotion).
@@ -155,7 +180,7 @@ class DiffusionAMPN(nn.Module):
             batch_dict=batch_dict,
             contact_mask_dict=contact_mask_dict,
         )
-        sq = (v_hat.float() - v.float()).square()  # [N, C]
+        sq = pointwise_loss(v_hat.float() - v.float(), huber_delta)  # [N, C]
         if node_mask is None:
             return sq.mean()
         w = node_mask.to(sq.dtype).unsqueeze(-1)  # [N, 1]

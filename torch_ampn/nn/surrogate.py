@@ -79,8 +79,11 @@ class AMPNSurrogate(nn.Module):
         gripper_alpha: float = 3e-2,
         center_target: bool = True,
         predict_change: bool = False,
+        huber_delta: float | None = None,
     ) -> None:
         super().__init__()
+        if huber_delta is not None and huber_delta <= 0:
+            raise ValueError(f"huber_delta must be positive or None, got {huber_delta}")
         if num_components < 2:
             raise ValueError(f"num_components must be >= 2 (plies and tools), got {num_components}")
         if diffusion_steps < 1:
@@ -90,6 +93,7 @@ class AMPNSurrogate(nn.Module):
         self.num_levels = num_levels
         self.gripper_alpha = gripper_alpha
         self.predict_change = predict_change
+        self.huber_delta = huber_delta
         self.contact = ComponentRadiusGraph(
             contact_radius, contact_k, level_radius_scale=level_radius_scale, num_components=num_components
         )
@@ -196,6 +200,8 @@ class AMPNSurrogate(nn.Module):
     def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
         """Training loss on the ply nodes of a window (batch): MSE on the normalised residual (ROBIN: on v).
 
+        With ``huber_delta`` the squared error becomes its Huber form beyond that error.
+
         ``data["l0"].target`` is the residual in mm and ``data["l0"].ply_mask`` selects the predicted nodes.
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
@@ -209,6 +215,7 @@ class AMPNSurrogate(nn.Module):
             batch_dict=self._batch_dict(data, self.num_levels),
             node_mask=fine.ply_mask,
             generator=generator,
+            huber_delta=self.huber_delta,
         )
 
     def predict_residual(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:

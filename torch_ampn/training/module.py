@@ -57,6 +57,8 @@ class AMPNLightningModule(L.LightningModule):
         predict_change: The network predicts the change of the residual (MeshGraphNets-style
             acceleration target) instead of the residual (the paper's target); see
             :class:`~torch_ampn.nn.AMPNSurrogate`.
+        huber_delta: Huber form of the loss beyond this normalised error (``None``: the paper's
+            MSE); see :class:`~torch_ampn.nn.AMPNSurrogate`.
         lr: Peak learning rate (paper: 1e-4).
         final_lr: Learning rate at the last step (paper: 1e-5).
         warmup_steps: Linear warm-up steps (paper: 1,000).
@@ -89,6 +91,7 @@ class AMPNLightningModule(L.LightningModule):
         contact_k: int = 3,
         center_target: bool = True,
         predict_change: bool = False,
+        huber_delta: float | None = None,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
@@ -119,6 +122,7 @@ class AMPNLightningModule(L.LightningModule):
             contact_k=contact_k,
             center_target=center_target,
             predict_change=predict_change,
+            huber_delta=huber_delta,
         )
         self._report: TestReport | None = None
 
