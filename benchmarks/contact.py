@@ -13,6 +13,10 @@ Usage::
 
     python benchmarks/contact.py --device cpu --sizes 1,2,4 --out benchmarks/results/contact_cpu.json
     python benchmarks/contact.py --device cuda --out benchmarks/results/contact_cuda.json
+    python benchmarks/contact.py --fixed-density --out benchmarks/results/contact_cpu_fixed_density.json
+
+By default a larger scale refines the same laminate, so at a fixed radius every node has
+about ``scale**2`` times more nodes in range; ``--fixed-density`` grows the laminate instead.
 """
 
 from __future__ import annotations
@@ -47,6 +51,12 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     p.add_argument("--no-cluster", action="store_true", help="skip the torch-cluster backend")
     p.add_argument(
+        "--fixed-density",
+        action="store_true",
+        help="grow the laminate with the scale (ply size 150 mm x scale) instead of refining it, "
+        "so node spacing and neighbours per node stay those of scale 1",
+    )
+    p.add_argument(
         "--out", default=None, help="JSON output (default benchmarks/results/contact_<device>.json)"
     )
     return p.parse_args()
@@ -73,11 +83,12 @@ def time_call(fn, device: torch.device, repeats: int, warmup: int) -> dict[str, 
 
 
 def bench_scale(scale: int, args: argparse.Namespace, device: torch.device) -> dict:
-    mesh = laminate_mesh(scale=scale)
+    mesh = laminate_mesh(scale=scale, ply_size=150.0 * scale if args.fixed_density else 150.0)
     pos, comp = mesh.pos.to(device), mesh.component.to(device)
     n, c = mesh.num_nodes, mesh.num_components
     r, k = args.r, args.k
     row: dict = {"scale": scale, "num_nodes": n, "num_components": c, "r": r, "k": k}
+    row["fixed_density"] = bool(args.fixed_density)
 
     nbr, mask = component_radius_table(pos, comp, r, k, num_components=c)
     row["table_shape"] = list(nbr.shape)
