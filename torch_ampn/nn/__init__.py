@@ -33,11 +33,11 @@ __all__ = [
     "edge_features",
     "fine_node_features",
     "geometric_beta_schedule",
-    "pointwise_loss",
     "gripper_features",
     "hierarchical_features",
     "node_type_one_hot",
     "num_coarse_node_features",
     "num_edge_features",
     "num_fine_node_features",
+    "pointwise_loss",
 ]

@@ -32,6 +32,7 @@ sampling is one forward pass. The step index the network sees is 0-based (``k - 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torch_ampn.nn.ampn import AMPN, EdgeType
@@ -58,8 +59,7 @@ def pointwise_loss(error: Tensor, huber_delta: float | None = None) -> Tensor:
         return error.square()
     if huber_delta <= 0:
         raise ValueError(f"huber_delta must be positive, got {huber_delta}")
-    a = error.abs()
-    return torch.where(a <= huber_delta, error.square(), 2.0 * huber_delta * a - huber_delta**2)
+    return 2.0 * F.huber_loss(error, torch.zeros_like(error), reduction="none", delta=huber_delta)
 
 
 def geometric_beta_schedule(
