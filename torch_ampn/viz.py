@@ -83,9 +83,7 @@ def plot_laminate(
     return last
 
 
-def _draw_level(
-    ax: Any, pos: Tensor, edge_index: Tensor, keep: Tensor, title: str, extent: Tensor
-) -> None:
+def _draw_level(ax: Any, pos: Tensor, edge_index: Tensor, keep: Tensor, title: str, extent: Tensor) -> None:
     """Draw nodes ``keep`` (bool [N]) of a level and the mesh edges among them, in the e1-e2 plane."""
     from matplotlib.collections import LineCollection
 

@@ -76,14 +76,12 @@ class InterLevelConv(MessagePassing):
         """
         x_src, x_dst = x
         size = (x_src.size(0), x_dst.size(0))
-        edge_attr = self.edge_updater(edge_index, x=(x_src, x_dst), edge_attr=edge_attr, size=size)  # [E, d]
+        edge_attr = self.lin_edge(edge_attr) + self.mlp_edge.forward_edges(
+            x_dst, x_src, edge_attr, edge_index
+        )  # [E, d]
         agg = self.propagate(edge_index, edge_attr=edge_attr, size=size)  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr
-
-    def edge_update(self, x_i: Tensor, x_j: Tensor, edge_attr: Tensor) -> Tensor:
-        """``W e_ij + f(k_i^rec, k_j^send, e_ij)``: ``[E, d]``."""
-        return self.lin_edge(edge_attr) + self.mlp_edge(torch.cat([x_i, x_j, edge_attr], dim=-1))
 
     def message(self, edge_attr: Tensor) -> Tensor:
         """The message of edge ``(j, i)`` is its updated embedding: ``[E, d]``."""

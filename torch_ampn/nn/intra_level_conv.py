@@ -112,12 +112,10 @@ class IntraLevelConv(MessagePassing):
             ``(x, e_mesh, e_contact)`` with the shapes of the inputs.
         """
         num_nodes = x.size(0)
-        e_contact = self.edge_updater(
-            contact_index, x=x, edge_attr=e_contact, lin=self.lin_contact, mlp=self.mlp_contact
+        e_contact = self.lin_contact(e_contact) + self.mlp_contact.forward_edges(
+            x, x, e_contact, contact_index
         )  # [M, d]
-        e_mesh = self.edge_updater(
-            mesh_index, x=x, edge_attr=e_mesh, lin=self.lin_mesh, mlp=self.mlp_mesh
-        )  # [E, d]
+        e_mesh = self.lin_mesh(e_mesh) + self.mlp_mesh.forward_edges(x, x, e_mesh, mesh_index)  # [E, d]
 
         agg_mesh = self.propagate(mesh_index, edge_attr=e_mesh, size=(num_nodes, num_nodes))  # [N, d]
         if contact_mask is None:
@@ -133,12 +131,6 @@ class IntraLevelConv(MessagePassing):
 
         x = self.lin_node(x) + self.mlp_node(torch.cat([x, agg_contact, agg_mesh], dim=-1))  # [N, d]
         return x, e_mesh, e_contact
-
-    def edge_update(
-        self, x_i: Tensor, x_j: Tensor, edge_attr: Tensor, lin: nn.Module, mlp: nn.Module
-    ) -> Tensor:
-        """``W e_ij + f(k_i, k_j, e_ij)`` for one edge set: ``[E, d]``."""
-        return lin(edge_attr) + mlp(torch.cat([x_i, x_j, edge_attr], dim=-1))
 
     def message(self, edge_attr: Tensor) -> Tensor:
         """The message of edge ``(j, i)`` is its updated embedding: ``[E, d]``."""

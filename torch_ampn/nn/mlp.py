@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 
@@ -45,8 +46,73 @@ class MLP(nn.Module):
         """Apply the MLP: ``[*, in_channels] -> [*, out_channels]``."""
         return self.lin2(self.act(self.lin1(self.norm(x))))
 
+    def forward_edges(self, x_dst: Tensor, x_src: Tensor, edge_attr: Tensor, edge_index: Tensor) -> Tensor:
+        r"""``self(cat([x_dst[i], x_src[j], edge_attr]))`` of every edge ``(j, i)``, uncatenated.
+
+        The same function as the plain call on the gathered, concatenated input (up to float
+        rounding), computed the way a message-passing layer can afford: ``LayerNorm`` and the
+        first linear layer are split into the three input blocks, so the node blocks are
+        multiplied once per *node* and gathered per edge with their mean and centred sum of
+        squares (the layer-norm statistics :math:`\mu, \sigma^2` of the concatenation follow
+        from those by the pairwise variance formula, without cancellation). Per edge that
+        leaves one ``[F_edge, hidden]`` product instead of a ``[F_dst + F_src + F_edge, hidden]``
+        one, and no ``[E, F]`` concatenation.
+
+        Args:
+            x_dst: Target node features ``[N_dst, F_dst]``.
+            x_src: Source node features ``[N_src, F_src]`` (may be ``x_dst``).
+            edge_attr: Edge features ``[E, F_edge]``; ``F_dst + F_src + F_edge = in_channels``.
+            edge_index: ``[2, E]``, rows ``(source j, target i)``.
+
+        Returns:
+            ``[E, out_channels]``.
+        """
+        f_dst, f_src, f_edge = x_dst.size(-1), x_src.size(-1), edge_attr.size(-1)
+        if f_dst + f_src + f_edge != self.in_channels:
+            raise ValueError(
+                f"feature sizes {f_dst} + {f_src} + {f_edge} do not add up to in_channels={self.in_channels}"
+            )
+        weight = self.lin1.weight * self.norm.weight  # [H, F]: W_1 diag(gamma)
+        # W_1 diag(gamma) (c - mean(c)) = W' c with a rank-one correction of the weight:
+        weight = weight - weight.sum(-1, keepdim=True) / self.in_channels  # [H, F]
+        h = weight.size(0)
+        w_dst, w_src, w_edge = weight.split([f_dst, f_src, f_edge], dim=-1)
+        if x_src is x_dst:
+            both = _block_table(x_dst, torch.cat([w_dst, w_src]))  # [N, 2H + 2]
+            t_dst = torch.cat([both[:, :h], both[:, 2 * h :]], dim=-1)  # [N, H + 2]
+            t_src = both[:, h:]  # [N, H + 2]
+        else:
+            t_dst, t_src = _block_table(x_dst, w_dst), _block_table(x_src, w_src)
+        z_dst, *stats_dst = t_dst.index_select(0, edge_index[1]).split([h, 1, 1], dim=-1)
+        z_src, *stats_src = t_src.index_select(0, edge_index[0]).split([h, 1, 1], dim=-1)
+        z_edge, *stats_edge = _block_table(edge_attr, w_edge).split([h, 1, 1], dim=-1)
+        z = z_dst + z_src + z_edge  # [E, H]
+        var = _pooled_variance(
+            [(f_dst, *stats_dst), (f_src, *stats_src), (f_edge, *stats_edge)], self.in_channels
+        )  # [E, 1]
+        bias = self.lin1.bias + self.lin1.weight @ self.norm.bias  # [H]: W_1 beta + b_1
+        hidden = z * torch.rsqrt(var + self.norm.eps) + bias  # [E, H]
+        return self.lin2(self.act(hidden))
+
     def __repr__(self) -> str:
         return (
             f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
             f"hidden_channels={self.hidden_channels})"
         )
+
+
+def _block_table(x: Tensor, weight: Tensor) -> Tensor:
+    """``[x @ weight.T, mean(x), sum((x - mean(x))^2)]`` per row: ``[N, F] -> [N, H + 2]``."""
+    mean = x.mean(-1, keepdim=True)  # [N, 1]
+    return torch.cat([x @ weight.t(), mean, (x - mean).square().sum(-1, keepdim=True)], dim=-1)
+
+
+def _pooled_variance(blocks: list[tuple[int, Tensor, Tensor]], total: int) -> Tensor:
+    """Population variance of a concatenation from each block's ``(size, mean, centred sum of squares)``.
+
+    Chan et al.'s pairwise formula, so no ``E[x^2] - E[x]^2`` cancellation when the
+    features have a large mean. Each mean / sum is ``[E, 1]``; returns ``[E, 1]``.
+    """
+    mean = sum(n * m for n, m, _ in blocks) / total  # [E, 1]
+    m2 = sum(s + n * (m - mean).square() for n, m, s in blocks)  # [E, 1]
+    return m2 / total

@@ -1,0 +1,96 @@
+"""Benchmark: an edge MLP on concatenated inputs versus ``MLP.forward_edges``.
+
+Both compute ``f(cat([x_i, x_j, e_ij]))`` for every edge, the edge update of every AMPN
+layer. The plain form gathers and concatenates ``[E, 3d]`` and multiplies it by ``W_1``;
+``forward_edges`` multiplies the node blocks once per node and gathers ``[E, d + 2]`` rows.
+Median time of forward + backward, side by side in one process; prints a table and writes JSON.
+
+    python benchmarks/edge_mlp.py --device cpu
+    python benchmarks/edge_mlp.py --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from torch_ampn.nn import MLP
+
+
+def _time(fn, repeats: int, device: torch.device) -> float:
+    """Median seconds of ``fn`` (forward + backward) after two warm-up calls."""
+    for _ in range(2):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def run_case(num_nodes: int, num_edges: int, channels: int, repeats: int, device: torch.device) -> dict:
+    """Time both forms on random features of one size; returns a result row."""
+    g = torch.Generator().manual_seed(0)
+    mlp = MLP(3 * channels, channels, hidden_channels=channels).to(device)
+    x = torch.randn(num_nodes, channels, generator=g).to(device).requires_grad_()
+    e = torch.randn(num_edges, channels, generator=g).to(device).requires_grad_()
+    edge_index = torch.randint(0, num_nodes, (2, num_edges), generator=g).to(device)
+
+    def concatenated() -> None:
+        mlp(torch.cat([x[edge_index[1]], x[edge_index[0]], e], dim=-1)).square().sum().backward()
+
+    def split() -> None:
+        mlp.forward_edges(x, x, e, edge_index).square().sum().backward()
+
+    # Interleave the two so slow drifts of a shared machine hit both alike.
+    t_cat, t_split = [], []
+    for _ in range(3):
+        t_cat.append(_time(concatenated, repeats, device))
+        t_split.append(_time(split, repeats, device))
+    cat_s, split_s = statistics.median(t_cat), statistics.median(t_split)
+    return {
+        "nodes": num_nodes,
+        "edges": num_edges,
+        "d": channels,
+        "concatenated_s": cat_s,
+        "forward_edges_s": split_s,
+        "speedup": cat_s / split_s,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    cases = [(9_000, 70_000, 32), (9_000, 70_000, 128), (16_390, 122_004, 128)]
+    rows = [run_case(n, e, d, args.repeats, device) for n, e, d in cases]
+    print(f"{'nodes':>7} {'edges':>8} {'d':>4} {'cat [ms]':>9} {'split [ms]':>10} {'speed-up':>8}")
+    for r in rows:
+        print(
+            f"{r['nodes']:>7} {r['edges']:>8} {r['d']:>4} {1e3 * r['concatenated_s']:>9.1f} "
+            f"{1e3 * r['forward_edges_s']:>10.1f} {r['speedup']:>7.2f}x"
+        )
+    out = args.out or Path(__file__).parent / "results" / f"edge_mlp_{device.type}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads()}
+    meta["machine"] = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+    out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
