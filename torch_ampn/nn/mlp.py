@@ -75,21 +75,21 @@ class MLP(nn.Module):
         weight = self.lin1.weight * self.norm.weight  # [H, F]: W_1 diag(gamma)
         # W_1 diag(gamma) (c - mean(c)) = W' c with a rank-one correction of the weight:
         weight = weight - weight.sum(-1, keepdim=True) / self.in_channels  # [H, F]
-        h = weight.size(0)
         w_dst, w_src, w_edge = weight.split([f_dst, f_src, f_edge], dim=-1)
-        if x_src is x_dst:
-            both = _block_table(x_dst, torch.cat([w_dst, w_src]))  # [N, 2H + 2]
-            t_dst = torch.cat([both[:, :h], both[:, 2 * h :]], dim=-1)  # [N, H + 2]
-            t_src = both[:, h:]  # [N, H + 2]
+        if x_src is x_dst:  # one product for both ends of the edges
+            z_dst, z_src = (x_dst @ torch.cat([w_dst, w_src]).t()).split(weight.size(0), dim=-1)  # [N, H] x2
+            stats_dst = stats_src = _row_stats(x_dst)  # [N, 2]
         else:
-            t_dst, t_src = _block_table(x_dst, w_dst), _block_table(x_src, w_src)
-        z_dst, *stats_dst = t_dst.index_select(0, edge_index[1]).split([h, 1, 1], dim=-1)
-        z_src, *stats_src = t_src.index_select(0, edge_index[0]).split([h, 1, 1], dim=-1)
-        z_edge, *stats_edge = _block_table(edge_attr, w_edge).split([h, 1, 1], dim=-1)
-        z = z_dst + z_src + z_edge  # [E, H]
-        var = _pooled_variance(
-            [(f_dst, *stats_dst), (f_src, *stats_src), (f_edge, *stats_edge)], self.in_channels
-        )  # [E, 1]
+            z_dst, stats_dst = x_dst @ w_dst.t(), _row_stats(x_dst)  # [N_dst, H], [N_dst, 2]
+            z_src, stats_src = x_src @ w_src.t(), _row_stats(x_src)  # [N_src, H], [N_src, 2]
+        src, dst = edge_index
+        z = z_dst.index_select(0, dst) + z_src.index_select(0, src) + edge_attr @ w_edge.t()  # [E, H]
+        blocks = [
+            (f_dst, stats_dst.index_select(0, dst)),
+            (f_src, stats_src.index_select(0, src)),
+            (f_edge, _row_stats(edge_attr)),
+        ]  # (size, [E, 2]) per block
+        var = _pooled_variance(blocks, self.in_channels)  # [E, 1]
         bias = self.lin1.bias + self.lin1.weight @ self.norm.bias  # [H]: W_1 beta + b_1
         hidden = z * torch.rsqrt(var + self.norm.eps) + bias  # [E, H]
         return self.lin2(self.act(hidden))
@@ -101,18 +101,18 @@ class MLP(nn.Module):
         )
 
 
-def _block_table(x: Tensor, weight: Tensor) -> Tensor:
-    """``[x @ weight.T, mean(x), sum((x - mean(x))^2)]`` per row: ``[N, F] -> [N, H + 2]``."""
+def _row_stats(x: Tensor) -> Tensor:
+    """``[mean(x), sum((x - mean(x))^2)]`` per row: ``[N, F] -> [N, 2]``."""
     mean = x.mean(-1, keepdim=True)  # [N, 1]
-    return torch.cat([x @ weight.t(), mean, (x - mean).square().sum(-1, keepdim=True)], dim=-1)
+    return torch.cat([mean, (x - mean).square().sum(-1, keepdim=True)], dim=-1)
 
 
-def _pooled_variance(blocks: list[tuple[int, Tensor, Tensor]], total: int) -> Tensor:
-    """Population variance of a concatenation from each block's ``(size, mean, centred sum of squares)``.
+def _pooled_variance(blocks: list[tuple[int, Tensor]], total: int) -> Tensor:
+    """Population variance of a concatenation from each block's ``(size, [mean, centred sum of squares])``.
 
     Chan et al.'s pairwise formula, so no ``E[x^2] - E[x]^2`` cancellation when the
-    features have a large mean. Each mean / sum is ``[E, 1]``; returns ``[E, 1]``.
+    features have a large mean. Each block's statistics are ``[E, 2]``; returns ``[E, 1]``.
     """
-    mean = sum(n * m for n, m, _ in blocks) / total  # [E, 1]
-    m2 = sum(s + n * (m - mean).square() for n, m, s in blocks)  # [E, 1]
+    mean = sum(n * stats[:, :1] for n, stats in blocks) / total  # [E, 1]
+    m2 = sum(stats[:, 1:] + n * (stats[:, :1] - mean).square() for n, stats in blocks)  # [E, 1]
     return m2 / total
