@@ -83,25 +83,10 @@ def _concatenated_forward_edges(
 
 def run_training_steps(data_dir: str, rounds: int = 4, steps: int = 17) -> dict:
     """Median ms per quickstart training step with each edge-MLP form, interleaved rounds."""
-    from torch_ampn.training import AMPNDataModule, AMPNLightningModule
+    from training_step import QuickstartCase  # benchmarks/training_step.py, next to this script
 
-    torch.manual_seed(0)
-    dm = AMPNDataModule(data_dir=data_dir, batch_size=4, contact_radius=12.0, cache_windows=True)
-    dm.setup("fit")
-    model = AMPNLightningModule(
-        hidden_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1,
-        up_layers=1, contact_radius=12.0, position_noise=3e-4, residual_noise=1e-4,
-    )  # fmt: skip
-    model.fit_statistics(dm.statistics_samples(50))
-    loader = iter(dm.train_dataloader())
-    batches = [next(loader) for _ in range(steps + 3)]
-    optimizer = torch.optim.Adam(model.parameters(), 1e-4)
-
-    def step(batch) -> None:
-        loss = model.surrogate.loss(model.add_training_noise(batch.clone()))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    case = QuickstartCase(data_dir, {}, steps + 3, compile_network=False)
+    batches, step = case.batches, case.step
 
     forms = {"concatenated": _concatenated_forward_edges, "forward_edges": MLP.forward_edges}
     times: dict[str, list[float]] = {name: [] for name in forms}

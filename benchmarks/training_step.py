@@ -35,7 +35,7 @@ VARIANTS: dict[str, dict] = {
 }
 
 
-class _Case:
+class QuickstartCase:
     """A model, its optimiser and a fixed list of batches for one variant."""
 
     def __init__(self, data_dir: str, settings: dict, num_batches: int, compile_network: bool) -> None:
@@ -83,9 +83,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
-    cases = {name: _Case(args.data_dir, s, args.steps + 1, False) for name, s in VARIANTS.items()}
+    cases = {name: QuickstartCase(args.data_dir, s, args.steps + 1, False) for name, s in VARIANTS.items()}
     if args.compile:
-        cases["quickstart, compiled"] = _Case(args.data_dir, {}, args.steps + 1, True)
+        cases["quickstart, compiled"] = QuickstartCase(args.data_dir, {}, args.steps + 1, True)
     for case in cases.values():  # warm-up
         case.step(case.batches[0])
     times: dict[str, list[float]] = {name: [] for name in cases}
