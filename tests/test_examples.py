@@ -73,3 +73,33 @@ def test_step_predictability_names_an_empty_folder(tmp_path):
     )
     assert result.returncode != 0
     assert str(tmp_path) in result.stderr and "no trajectory" in result.stderr
+
+
+def test_step_predictability_model_errors_agree_with_the_data_references():
+    """A 'model' that returns the truth errs 0; one that returns zero / the last residual
+    reproduces the data-only ``zero`` / ``const_vel`` columns (computed independently)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from torch_ampn.data.dataset import HierarchyCache
+    from torch_ampn.sim import StampFormingConfig, simulate
+
+    example = _load_example("step_predictability")
+    cfg = StampFormingConfig(ply_cells=5, punch_cells=(4, 4), die_cells=(4, 4), num_steps=5)
+    traj = simulate(cfg, seed=3)
+    hierarchy = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)(traj)
+    stats = example.step_statistics(traj)
+
+    def fake(predict):
+        return SimpleNamespace(surrogate=SimpleNamespace(contact=None, predict_residual=predict))
+
+    truth = example.model_step_errors(fake(lambda data, g: data["l0"].target), traj, hierarchy)
+    torch.testing.assert_close(truth, torch.zeros(5, dtype=torch.float64))
+    zero = example.model_step_errors(
+        fake(lambda data, g: torch.zeros_like(data["l0"].target)), traj, hierarchy
+    )
+    torch.testing.assert_close(zero, stats["zero"], rtol=1e-5, atol=1e-7)
+    assert float(stats["zero"].max()) > 0.01  # the plies move, so the comparison has teeth
+    last = example.model_step_errors(fake(lambda data, g: data["l0"].prev_disp), traj, hierarchy)
+    torch.testing.assert_close(last[1:], stats["const_vel"][1:], rtol=1e-5, atol=1e-7)

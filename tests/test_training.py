@@ -403,3 +403,42 @@ def test_ema_weight_averaging_keeps_statistics_and_averages_by_hand(data_dir):
     for (name, b_plain), (_, b_avg) in zip(plain.named_buffers(), averaged.named_buffers(), strict=True):
         assert torch.equal(b_plain, b_avg), name
     assert averaged.surrogate.statistics_frozen
+
+
+def _fit_three_steps_compiled(data_dir, **kwargs):
+    L.seed_everything(0)
+    module = AMPNLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
+    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, batch_size=2)
+    _quiet_trainer(max_steps=3).fit(module, datamodule=dm)
+    return module
+
+
+def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(data_dir):
+    torch._dynamo.reset()
+    eager = _fit_three_steps_compiled(data_dir)
+    compiled = _fit_three_steps_compiled(data_dir, compile_network=True)
+    torch._dynamo.reset()
+    assert compiled._compiled_network not in (None, False)  # the compiled network trained
+    assert list(compiled.state_dict()) == list(eager.state_dict())  # no _orig_mod keys
+    for (name, p_eager), (_, p_comp) in zip(
+        eager.named_parameters(), compiled.named_parameters(), strict=True
+    ):
+        torch.testing.assert_close(p_comp, p_eager, rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_compile_failure_falls_back_to_eager_with_a_warning(data_dir, monkeypatch):
+    import torch_ampn.training.module as module_mod
+
+    def broken_compile(model, **kwargs):
+        def run(*args, **kw):
+            raise RuntimeError("no C++ compiler")
+
+        return run
+
+    monkeypatch.setattr(module_mod.torch, "compile", broken_compile)
+    eager = _fit_three_steps_compiled(data_dir)
+    with pytest.warns(UserWarning, match="torch.compile failed.*no C\\+\\+ compiler"):
+        fallback = _fit_three_steps_compiled(data_dir, compile_network=True)
+    assert fallback._compiled_network is False
+    for (name, p_eager), (_, p_fb) in zip(eager.named_parameters(), fallback.named_parameters(), strict=True):
+        torch.testing.assert_close(p_fb, p_eager, rtol=0, atol=0, msg=name)

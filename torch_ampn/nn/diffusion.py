@@ -138,6 +138,7 @@ class DiffusionAMPN(nn.Module):
         step: Tensor | None = None,
         generator: torch.Generator | None = None,
         huber_delta: float | None = None,
+        network: nn.Module | None = None,
     ) -> Tensor:
         r"""The training loss: MSE between predicted and true ``v`` at a random step per graph.
 
@@ -154,6 +155,9 @@ class DiffusionAMPN(nn.Module):
             generator: Random generator for ``noise`` and ``step``.
             huber_delta: Use the Huber form of the squared error beyond this error
                 (:func:`pointwise_loss`); ``None``: plain MSE (the paper).
+            network: Callable run in place of :attr:`model` with the same parameters, e.g.
+                ``torch.compile(self.model)`` (kept out of the module tree, so checkpoints keep
+                their keys); ``None``: :attr:`model`.
 
         Returns:
             Scalar loss (float32 or the autocast dtype's promotion).
@@ -171,7 +175,7 @@ class DiffusionAMPN(nn.Module):
         alpha_bar = alpha_bar[batch] if batch is not None else alpha_bar.expand(target.size(0))
         alpha_bar = alpha_bar.unsqueeze(-1).to(target.dtype)  # [N, 1]
         x_k, v = self.q_sample(target, noise, alpha_bar)
-        v_hat = self.model(
+        v_hat = (self.model if network is None else network)(
             x_dict,
             edge_index_dict,
             edge_attr_dict,

@@ -197,10 +197,17 @@ class AMPNSurrogate(nn.Module):
         """What the network learns, in mm ``[N_0, 3]``: the residual, or its change (``predict_change``)."""
         return fine.target - fine.prev_disp if self.predict_change else fine.target
 
-    def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
+    def loss(
+        self,
+        data: HierarchicalData,
+        generator: torch.Generator | None = None,
+        network: nn.Module | None = None,
+    ) -> Tensor:
         """Training loss on the ply nodes of a window (batch): MSE on the normalised residual (ROBIN: on v).
 
         With ``huber_delta`` the squared error becomes its Huber form beyond that error.
+        ``network`` runs in place of the AMPN (e.g. its ``torch.compile`` wrapper; see
+        :meth:`DiffusionAMPN.loss`).
 
         ``data["l0"].target`` is the residual in mm and ``data["l0"].ply_mask`` selects the predicted nodes.
         """
@@ -216,6 +223,7 @@ class AMPNSurrogate(nn.Module):
             node_mask=fine.ply_mask,
             generator=generator,
             huber_delta=self.huber_delta,
+            network=network,
         )
 
     def predict_residual(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
