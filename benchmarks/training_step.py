@@ -80,10 +80,15 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=12, help="timed steps per round")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--compile", action="store_true", help="add the compiled quickstart network")
+    parser.add_argument(
+        "--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+        help="eager variants to time (quickstart is always included)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
-    cases = {name: QuickstartCase(args.data_dir, s, args.steps + 1, False) for name, s in VARIANTS.items()}
+    names = ["quickstart"] + [n for n in args.variants if n != "quickstart"]
+    cases = {name: QuickstartCase(args.data_dir, VARIANTS[name], args.steps + 1, False) for name in names}
     if args.compile:
         cases["quickstart, compiled"] = QuickstartCase(args.data_dir, {}, args.steps + 1, True)
     for case in cases.values():  # warm-up
