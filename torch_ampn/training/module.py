@@ -203,8 +203,11 @@ class AMPNLightningModule(L.LightningModule):
             fine.prev_disp = fine.prev_disp + ply * (hp.residual_noise * sigma_x) * torch.randn_like(fine.pos)
         return data
 
-    def _training_loss(self, data: HierarchicalData) -> Tensor:
-        """The surrogate's loss, through the compiled network when ``compile_network`` is on."""
+    def training_loss(self, data: HierarchicalData) -> Tensor:
+        """The surrogate's loss on a (noised) batch.
+
+        With ``compile_network`` it runs through the compiled network (compiled at the first call).
+        """
         compiled = self._compiled_network
         if compiled is False:
             return self.surrogate.loss(data)
@@ -230,7 +233,7 @@ class AMPNLightningModule(L.LightningModule):
 
     def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
         """One next-step residual loss on a batch of windows."""
-        loss = self._training_loss(self.add_training_noise(batch))
+        loss = self.training_loss(self.add_training_noise(batch))
         self.log("train/loss", loss, prog_bar=True, batch_size=batch.num_graphs)
         return loss
 
