@@ -14,15 +14,30 @@ fi
 # shellcheck disable=SC1091
 source "$venv/bin/activate"
 
+# Extras to install: the main job needs only `train`; the tests also `test` and `dev`.
+extras="${AMPN_EXTRAS:-train,test,dev}"
 stamp="$venv/.torch-ampn-install-stamp"
 want="$(cat "$root/constraints/ci.txt" "$root/pyproject.toml" | sha256sum | cut -d' ' -f1)"
-if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-    echo "[install] installing torch-ampn with pinned dependencies (constraints/ci.txt)"
+installed_ok() {  # the stamp has this hash and every requested extra
+    [ -f "$stamp" ] || return 1
+    [ "$(sed -n 1p "$stamp")" = "$want" ] || return 1
+    local have extra
+    have=",$(sed -n 2p "$stamp"),"
+    for extra in ${extras//,/ }; do
+        case "$have" in *",$extra,"*) ;; *) return 1 ;; esac
+    done
+}
+if ! installed_ok; then
+    # keep the extras installed before (same hash) so that the stamp stays a superset
+    if [ -f "$stamp" ] && [ "$(sed -n 1p "$stamp")" = "$want" ]; then
+        extras="$(printf '%s,%s' "$(sed -n 2p "$stamp")" "$extras" | tr ',' '\n' | sed '/^$/d' | sort -u | paste -sd, -)"
+    fi
+    echo "[install] installing torch-ampn[$extras] with pinned dependencies (constraints/ci.txt)"
     # torch is named in the same command as everything else so that pip never
     # resolves a newer torch (with CUDA packages) for lightning.
     python -m pip install --quiet --disable-pip-version-check \
-        -c "$root/constraints/ci.txt" torch -e "$root[train,test,dev]"
-    echo "$want" > "$stamp"
+        -c "$root/constraints/ci.txt" torch -e "$root[$extras]"
+    printf '%s\n%s\n' "$want" "$extras" > "$stamp"
 fi
 
 # CPU-only guard: the CI machine has no GPU, and a CUDA torch build means the pin failed.

@@ -15,7 +15,12 @@ import lightning as L  # noqa: E402
 from torch_ampn.data import NodeType  # noqa: E402
 from torch_ampn.data_cli import generate  # noqa: E402
 from torch_ampn.sim import StampFormingConfig  # noqa: E402
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule, warmup_exponential_decay  # noqa: E402
+from torch_ampn.training import (  # noqa: E402
+    AMPNDataModule,
+    AMPNLightningModule,
+    WarmupExponentialDecay,
+    warmup_exponential_decay,
+)
 from torch_ampn.training.cli import main  # noqa: E402
 
 TINY_SIM = dict(ply_cells=5, punch_cells=[4, 4], die_cells=[4, 4], num_steps=6)
@@ -70,6 +75,87 @@ def test_schedule_formula_at_chosen_steps():
     assert warmup_exponential_decay(3, 0, 10, 1.0, 0.1) == pytest.approx(0.1**0.3)
     with pytest.raises(ValueError):
         warmup_exponential_decay(0, 1, 10, 0.0, 1e-5)
+
+
+class _FakeClock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_schedule_without_time_budget_is_the_step_formula():
+    f = WarmupExponentialDecay(10, 110, 1e-4, 1e-5)
+    assert [f(s) for s in range(0, 200, 7)] == [
+        warmup_exponential_decay(s, 10, 110, 1e-4, 1e-5) for s in range(0, 200, 7)
+    ]
+    g = WarmupExponentialDecay(10, 110, 1e-4, 1e-5, time_remaining=lambda: None)  # Timer without max_time
+    assert [g(s) for s in range(0, 200, 7)] == [f(s) for s in range(0, 200, 7)]
+
+
+def test_schedule_under_a_time_budget_decays_with_whichever_runs_out_first():
+    clock = _FakeClock()
+    remaining = {"s": 1000.0}
+    f = WarmupExponentialDecay(10, 110, 1e-4, 1e-5, time_remaining=lambda: remaining["s"], clock=clock)
+    # warm-up counts steps only, however much time passes
+    clock.now += 5000.0
+    assert f(0) == pytest.approx(0.1) and f(9) == pytest.approx(1.0)
+    # the first decay step notes the time left (R_0 = 400 s) and starts at lr
+    remaining["s"] = 400.0
+    assert f(10) == pytest.approx(1.0)
+    # 100 s later (a quarter of R_0) at step 20 (a tenth of the steps): time leads, p = 1/4
+    clock.now += 100.0
+    assert 1e-4 * f(20) == pytest.approx(1e-4 * 0.1**0.25)
+    # at step 85 (p_steps = 3/4 > 1/4) the steps lead
+    assert 1e-4 * f(85) == pytest.approx(1e-4 * 0.1**0.75)
+    # when the budget is spent the rate is final_lr, and stays there
+    clock.now += 300.0
+    assert 1e-4 * f(30) == pytest.approx(1e-5)
+    clock.now += 300.0
+    assert 1e-4 * f(31) == pytest.approx(1e-5)
+    # a budget already spent at the first decay step: final_lr at once
+    h = WarmupExponentialDecay(0, 10, 1.0, 0.1, time_remaining=lambda: 0.0, clock=clock)
+    assert h(0) == pytest.approx(0.1)
+
+
+def test_time_limited_fit_ends_at_the_final_rate_with_a_validation(data_dir, tmp_path):
+    """trainer.max_time stops a fit long before max_steps; the rate has decayed to final_lr by then."""
+    torch.manual_seed(0)
+    module = AMPNLightningModule(**SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=2, statistics_samples=8)
+    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4)
+    lrs, vals = [], []
+
+    class Record(L.Callback):
+        def on_train_batch_end(self, trainer, *args):
+            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+        def on_validation_end(self, trainer, *args):
+            vals.append(trainer.global_step)
+
+    trainer = L.Trainer(
+        max_steps=100_000,
+        max_time={"seconds": 3},
+        val_check_interval=100_000,
+        check_val_every_n_epoch=None,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        accelerator="cpu",
+        callbacks=[Record()],
+    )
+    trainer.fit(module, dm)
+    steps = trainer.global_step
+    assert 3 < steps < 100_000
+    # the step formula alone would still be at the peak rate; the time budget brought it to final_lr
+    assert 1e-3 * warmup_exponential_decay(steps, 2, 100_000, 1e-3, 1e-4) > 9e-4
+    assert lrs[-1] == pytest.approx(1e-4, rel=1e-6)
+    assert all(
+        a >= b - 1e-12 for a, b in zip(lrs[2:-1], lrs[3:], strict=True)
+    )  # decays monotonically after warm-up
+    assert vals and vals[-1] == steps  # validation runs at the stop, so the last weights are checked
 
 
 def test_module_scheduler_steps_per_optimiser_step(data_dir, monkeypatch):

@@ -7,7 +7,7 @@ from torch_ampn.training.datamodule import AMPNDataModule
 from torch_ampn.training.items import RolloutDataset, RolloutItem
 from torch_ampn.training.module import AMPNLightningModule
 from torch_ampn.training.report import TestReport
-from torch_ampn.training.schedule import warmup_exponential_decay
+from torch_ampn.training.schedule import WarmupExponentialDecay, warmup_exponential_decay
 
 __all__ = [
     "AMPNDataModule",
@@ -15,5 +15,6 @@ __all__ = [
     "RolloutDataset",
     "RolloutItem",
     "TestReport",
+    "WarmupExponentialDecay",
     "warmup_exponential_decay",
 ]

@@ -17,7 +17,7 @@ from torch_ampn.nn.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.training.items import RolloutItem
 from torch_ampn.training.report import TestReport, write_prediction
-from torch_ampn.training.schedule import warmup_exponential_decay
+from torch_ampn.training.schedule import WarmupExponentialDecay
 
 
 class AMPNLightningModule(L.LightningModule):
@@ -26,7 +26,9 @@ class AMPNLightningModule(L.LightningModule):
     * **fit**: MSE on the normalised next-step residual of ply nodes (ROBIN mode with
       ``diffusion_steps > 1``: the v-prediction loss at a random diffusion step); Adam;
       linear warm-up over ``warmup_steps`` then exponential decay ``lr -> final_lr`` over the
-      remaining steps, stepped per optimiser step; training noise ``position_noise`` *
+      remaining steps, stepped per optimiser step (with ``trainer.max_time`` set, the decay
+      ends at ``final_lr`` when either the steps or the time run out, see
+      :class:`~torch_ampn.training.schedule.WarmupExponentialDecay`); training noise ``position_noise`` *
       :math:`\sigma_x` on ply positions and ``residual_noise`` * :math:`\sigma_x` on the
       previous residual (:math:`\sigma_x`: std of training node positions). Gradient clipping
       at norm 1 is the Trainer's ``gradient_clip_val`` (the ``torch-ampn`` CLI sets it).
@@ -161,12 +163,22 @@ class AMPNLightningModule(L.LightningModule):
         """Adam with the warm-up + exponential-decay schedule, stepped per optimiser step."""
         hp = self.hparams
         optimizer = torch.optim.Adam(self.parameters(), lr=hp.lr)
-        total = self._total_steps()
-        scheduler = torch.optim.lr_scheduler.LambdaLR(
-            optimizer,
-            lambda step: warmup_exponential_decay(step, hp.warmup_steps, total, hp.lr, hp.final_lr),
+        factor = WarmupExponentialDecay(
+            hp.warmup_steps, self._total_steps(), hp.lr, hp.final_lr, time_remaining=self._time_remaining_fn()
         )
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def _time_remaining_fn(self):
+        """``Timer.time_remaining`` of the Trainer's ``max_time`` limit, or ``None`` without one."""
+        if self._trainer is None:
+            return None
+        from lightning.pytorch.callbacks import Timer
+
+        for callback in self.trainer.callbacks:
+            if isinstance(callback, Timer) and callback.time_remaining() is not None:
+                return callback.time_remaining
+        return None
 
     def _total_steps(self) -> int:
         if self._trainer is None:
