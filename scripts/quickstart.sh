@@ -28,7 +28,7 @@ echo "[quickstart] default dataset (the data section of $config) -> data/default
 torch-ampn-data generate --out data/default --num-train 24 --num-val 2 --num-test 4
 fit_s=$((budget - SECONDS - reserve))
 if [ "$fit_s" -lt 120 ]; then fit_s=120; fi
-max_time="00:00:$((fit_s / 60)):$((fit_s % 60))"
+max_time="$(printf '00:%02d:%02d:%02d' $((fit_s / 3600)) $((fit_s % 3600 / 60)) $((fit_s % 60)))"
 echo "[quickstart] torch-ampn fit (${SECONDS} s so far; training time limit ${fit_s} s)"
 torch-ampn fit --config "$config" --trainer.max_time "$max_time" "$@"
 echo "[quickstart] torch-ampn test"
