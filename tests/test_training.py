@@ -139,12 +139,12 @@ def test_time_limited_fit_ends_at_the_final_rate_with_a_validation(data_dir, tmp
         val_check_interval=100_000,
         check_val_every_n_epoch=None,
         logger=False,
-        enable_checkpointing=False,
+        default_root_dir=str(tmp_path),
         enable_progress_bar=False,
         enable_model_summary=False,
         num_sanity_val_steps=0,
         accelerator="cpu",
-        callbacks=[Record()],
+        callbacks=[Record(), L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)],
     )
     trainer.fit(module, dm)
     steps = trainer.global_step
@@ -156,6 +156,9 @@ def test_time_limited_fit_ends_at_the_final_rate_with_a_validation(data_dir, tmp
         a >= b - 1e-12 for a, b in zip(lrs[2:-1], lrs[3:], strict=True)
     )  # decays monotonically after warm-up
     assert vals and vals[-1] == steps  # validation runs at the stop, so the last weights are checked
+    # the checkpoint loads weights-only (as `torch-ampn test --ckpt_path` does): no clock or Timer inside
+    ckpt = torch.load(tmp_path / "ckpt" / "last.ckpt", weights_only=True, map_location="cpu")
+    assert ckpt["global_step"] == steps
 
 
 def test_module_scheduler_steps_per_optimiser_step(data_dir, monkeypatch):

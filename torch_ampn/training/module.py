@@ -166,7 +166,9 @@ class AMPNLightningModule(L.LightningModule):
         factor = WarmupExponentialDecay(
             hp.warmup_steps, self._total_steps(), hp.lr, hp.final_lr, time_remaining=self._time_remaining_fn()
         )
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+        # a plain function, not the callable object: LambdaLR would put the object's attributes
+        # (the clock, the Timer's method) into checkpoints, which weights-only loading rejects
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: factor(step))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     def _time_remaining_fn(self):
