@@ -99,6 +99,6 @@ class WarmupExponentialDecay:
                 self.time_remaining = None
                 return factor
             self._decay_start = (self.clock(), float(remaining))
-        decay_steps = max(self.total_steps - self.warmup_steps, 1)
-        progress = min(max((step - self.warmup_steps) / decay_steps, self.time_progress()), 1.0)
-        return math.exp(progress * math.log(self.final_lr / self.lr))
+        # both factors fall with their progress, so the smaller one is the one further along
+        by_time = math.exp(min(self.time_progress(), 1.0) * math.log(self.final_lr / self.lr))
+        return min(factor, by_time)
