@@ -456,6 +456,36 @@ def test_huber_loss_of_the_module_by_hand(data_dir):
         AMPNLightningModule(**SMALL_MODEL, huber_delta=-1.0)
 
 
+def test_coarse_loss_of_the_module_by_hand(data_dir):
+    """coarse_loss_weight: fine MSE plus the restricted errors of the hierarchy's coarse levels."""
+    module, dm = _fitted_module(data_dir, coarse_loss_weight=0.5)
+    s = module.surrogate
+    data = list(dm.statistics_samples(8))[-1]
+    loss = s.loss(data, generator=torch.Generator().manual_seed(5))
+    x_dict, index_dict, e_dict = s.normalized_features(data)
+    target = s.target_norm(data["l0"].target)
+    noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        err = (s.model(x_dict, index_dict, e_dict, noise=noise) - target).double()  # [N, 3]
+    # dense reference: weighted means over |P| with ply-mask weights, level by level
+    w = data["l0"].ply_mask.double()
+    want = (err.square() * w[:, None]).sum() / (3 * w.sum())
+    e = err
+    for k in range(s.num_levels - 1):
+        down = data.down(k)
+        p = torch.zeros(e.size(0), data[f"l{k + 1}"].num_nodes, dtype=torch.float64)
+        p[down.edge_index[0], down.edge_index[1]] = down.edge_weight.double().abs()
+        a = p * w[:, None]
+        w = a.sum(0)
+        assert (w > 0).any() and (w == 0).any()  # tool aggregates hold no ply weight
+        e = (a.t() @ e) / w.clamp(min=1e-300)[:, None]
+        want = want + 0.5 * (e.square() * w[:, None]).sum() / (3 * w.sum())
+    torch.testing.assert_close(loss.double(), want, rtol=1e-5, atol=1e-8)
+    plain, _ = _fitted_module(data_dir)
+    plain.surrogate.load_state_dict(s.state_dict())
+    assert loss > plain.surrogate.loss(data, generator=torch.Generator().manual_seed(5))
+
+
 class _RecordParameters(L.Callback):
     """Parameters after every optimiser step."""
 

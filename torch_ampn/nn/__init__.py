@@ -17,6 +17,7 @@ from torch_ampn.nn.features import (
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.mlp import MLP
+from torch_ampn.nn.multilevel_loss import multilevel_mse, restrict_mean
 from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.nn.surrogate import AMPNSurrogate
 
@@ -35,9 +36,11 @@ __all__ = [
     "geometric_beta_schedule",
     "gripper_features",
     "hierarchical_features",
+    "multilevel_mse",
     "node_type_one_hot",
     "num_coarse_node_features",
     "num_edge_features",
     "num_fine_node_features",
     "pointwise_loss",
+    "restrict_mean",
 ]

@@ -41,6 +41,14 @@ from torch_ampn.nn.ampn import AMPN, EdgeType
 PAPER_NUM_STEPS = (1, 5, 10, 20)
 
 
+def masked_mean(values: Tensor, node_mask: Tensor | None = None) -> Tensor:
+    """Mean of ``values`` ``[N, C]`` over the rows where ``node_mask`` ``[N]`` is set (all if ``None``)."""
+    if node_mask is None:
+        return values.mean()
+    w = node_mask.to(values.dtype).unsqueeze(-1)  # [N, 1]
+    return (values * w).sum() / (w.sum() * values.size(-1)).clamp(min=1.0)
+
+
 def pointwise_loss(error: Tensor, huber_delta: float | None = None) -> Tensor:
     r"""Squared error, or with ``huber_delta`` its Huber form scaled to match it near zero.
 
@@ -125,7 +133,7 @@ class DiffusionAMPN(nn.Module):
         a, s = alpha_bar.sqrt(), (1.0 - alpha_bar).sqrt()
         return a * x0 + s * noise, s * x0 - a * noise
 
-    def loss(
+    def error(
         self,
         target: Tensor,
         x_dict: dict[str, Tensor],
@@ -133,14 +141,14 @@ class DiffusionAMPN(nn.Module):
         edge_attr_dict: dict[EdgeType, Tensor],
         batch_dict: dict[str, Tensor] | None = None,
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
-        node_mask: Tensor | None = None,
         noise: Tensor | None = None,
         step: Tensor | None = None,
         generator: torch.Generator | None = None,
-        huber_delta: float | None = None,
         network: nn.Module | None = None,
     ) -> Tensor:
-        r"""The training loss: MSE between predicted and true ``v`` at a random step per graph.
+        r"""Error :math:`\hat v - v` of every ``l0`` node at a random step per graph, ``[N_0, C]`` (float32).
+
+        :meth:`loss` reduces it; a multilevel loss (:func:`~torch_ampn.nn.multilevel_mse`) restricts it.
 
         Args:
             target: Normalised residual :math:`x_0` of the ``l0`` nodes, ``[N_0, C]``.
@@ -149,18 +157,15 @@ class DiffusionAMPN(nn.Module):
             edge_attr_dict: See :meth:`AMPN.forward`.
             batch_dict: Graph of every node per level (batched data): one step per graph.
             contact_mask_dict: See :meth:`AMPN.forward`.
-            node_mask: ``BoolTensor[N_0]``: nodes that enter the loss (e.g. ply nodes); all if ``None``.
             noise: :math:`\epsilon` ``[N_0, C]``; drawn (first) from ``generator`` if ``None``.
             step: 0-based steps ``LongTensor[B]``; drawn (second) from ``generator`` if ``None``.
             generator: Random generator for ``noise`` and ``step``.
-            huber_delta: Use the Huber form of the squared error beyond this error
-                (:func:`pointwise_loss`); ``None``: plain MSE (the paper).
             network: Callable run in place of :attr:`model` with the same parameters, e.g.
                 ``torch.compile(self.model)`` (kept out of the module tree, so checkpoints keep
                 their keys); ``None``: :attr:`model`.
 
         Returns:
-            Scalar loss (float32 or the autocast dtype's promotion).
+            ``[N_0, C]``.
         """
         batch = None if batch_dict is None else batch_dict.get("l0")
         num_graphs = 1 if batch is None else int(batch.max()) + 1 if batch.numel() > 0 else 1
@@ -184,11 +189,49 @@ class DiffusionAMPN(nn.Module):
             batch_dict=batch_dict,
             contact_mask_dict=contact_mask_dict,
         )
-        sq = pointwise_loss(v_hat.float() - v.float(), huber_delta)  # [N, C]
-        if node_mask is None:
-            return sq.mean()
-        w = node_mask.to(sq.dtype).unsqueeze(-1)  # [N, 1]
-        return (sq * w).sum() / (w.sum() * sq.size(-1)).clamp(min=1.0)
+        return v_hat.float() - v.float()
+
+    def loss(
+        self,
+        target: Tensor,
+        x_dict: dict[str, Tensor],
+        edge_index_dict: dict[EdgeType, Tensor],
+        edge_attr_dict: dict[EdgeType, Tensor],
+        batch_dict: dict[str, Tensor] | None = None,
+        contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+        node_mask: Tensor | None = None,
+        noise: Tensor | None = None,
+        step: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        huber_delta: float | None = None,
+        network: nn.Module | None = None,
+    ) -> Tensor:
+        r"""The training loss: MSE between predicted and true ``v`` at a random step per graph.
+
+        Args:
+            target: See :meth:`error`.
+            x_dict: See :meth:`error`.
+            edge_index_dict: See :meth:`error`.
+            edge_attr_dict: See :meth:`error`.
+            batch_dict: See :meth:`error`.
+            contact_mask_dict: See :meth:`error`.
+            node_mask: ``BoolTensor[N_0]``: nodes that enter the loss (e.g. ply nodes); all if ``None``.
+            huber_delta: Use the Huber form of the squared error beyond this error
+                (:func:`pointwise_loss`); ``None``: plain MSE (the paper).
+            noise: See :meth:`error`.
+            step: See :meth:`error`.
+            generator: See :meth:`error`.
+            network: See :meth:`error`.
+
+        Returns:
+            Scalar loss (float32).
+        """
+        error = self.error(
+            target, x_dict, edge_index_dict, edge_attr_dict, batch_dict=batch_dict,
+            contact_mask_dict=contact_mask_dict, noise=noise, step=step, generator=generator,
+            network=network,
+        )  # fmt: skip
+        return masked_mean(pointwise_loss(error, huber_delta), node_mask)
 
     def sample(
         self,

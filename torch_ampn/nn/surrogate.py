@@ -16,6 +16,7 @@ from torch_ampn.nn.features import (
     num_edge_features,
     num_fine_node_features,
 )
+from torch_ampn.nn.multilevel_loss import multilevel_mse
 from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 
@@ -58,6 +59,11 @@ class AMPNSurrogate(nn.Module):
             previous residual back (:meth:`predict_residual` always returns :math:`\Delta u^t`).
             A zero output then means "keep moving as in the last step", as MeshGraphNets'
             acceleration targets do. ``False`` is the paper's residual target.
+        huber_delta: Huber form of the squared error beyond this normalised error
+            (:func:`~torch_ampn.nn.diffusion.pointwise_loss`); ``None``: plain MSE (the paper).
+        coarse_loss_weight: :math:`\lambda` of the multilevel loss
+            (:func:`~torch_ampn.nn.multilevel_mse`): the squared errors of the residual error
+            restricted to every coarse level are added with this weight; 0 (the paper): plain MSE.
     """
 
     def __init__(
@@ -80,10 +86,15 @@ class AMPNSurrogate(nn.Module):
         center_target: bool = True,
         predict_change: bool = False,
         huber_delta: float | None = None,
+        coarse_loss_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if huber_delta is not None and huber_delta <= 0:
             raise ValueError(f"huber_delta must be positive or None, got {huber_delta}")
+        if coarse_loss_weight < 0:
+            raise ValueError(f"coarse_loss_weight must be >= 0, got {coarse_loss_weight}")
+        if coarse_loss_weight > 0 and huber_delta is not None:
+            raise ValueError("coarse_loss_weight > 0 needs the plain squared error (huber_delta=None)")
         if num_components < 2:
             raise ValueError(f"num_components must be >= 2 (plies and tools), got {num_components}")
         if diffusion_steps < 1:
@@ -94,6 +105,7 @@ class AMPNSurrogate(nn.Module):
         self.gripper_alpha = gripper_alpha
         self.predict_change = predict_change
         self.huber_delta = huber_delta
+        self.coarse_loss_weight = coarse_loss_weight
         self.contact = ComponentRadiusGraph(
             contact_radius, contact_k, level_radius_scale=level_radius_scale, num_components=num_components
         )
@@ -205,7 +217,9 @@ class AMPNSurrogate(nn.Module):
     ) -> Tensor:
         """Training loss on the ply nodes of a window (batch): MSE on the normalised residual (ROBIN: on v).
 
-        With ``huber_delta`` the squared error becomes its Huber form beyond that error.
+        With ``huber_delta`` the squared error becomes its Huber form beyond that error; with
+        ``coarse_loss_weight`` the restricted errors of the coarse levels are added
+        (:func:`~torch_ampn.nn.multilevel_mse`).
         ``network`` runs in place of the AMPN (e.g. its ``torch.compile`` wrapper; see
         :meth:`DiffusionAMPN.loss`).
 
@@ -214,17 +228,19 @@ class AMPNSurrogate(nn.Module):
         x_dict, index_dict, e_dict = self.normalized_features(data)
         fine = data["l0"]
         target = self.target_norm(self._network_target(fine))
-        return self.diffusion.loss(
-            target,
-            x_dict,
-            index_dict,
-            e_dict,
-            batch_dict=self._batch_dict(data, self.num_levels),
-            node_mask=fine.ply_mask,
-            generator=generator,
-            huber_delta=self.huber_delta,
-            network=network,
-        )
+        args = (target, x_dict, index_dict, e_dict)
+        batch_dict = self._batch_dict(data, self.num_levels)
+        if self.coarse_loss_weight == 0:
+            return self.diffusion.loss(
+                *args, batch_dict=batch_dict, node_mask=fine.ply_mask, generator=generator,
+                huber_delta=self.huber_delta, network=network,
+            )  # fmt: skip
+        error = self.diffusion.error(*args, batch_dict=batch_dict, generator=generator, network=network)
+        down = [
+            (data.down(k).edge_index, data.down(k).edge_weight, data[level_name(k + 1)].num_nodes)
+            for k in range(self.num_levels - 1)
+        ]
+        return multilevel_mse(error, fine.ply_mask, down, self.coarse_loss_weight)
 
     def predict_residual(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
         r"""Predicted residual :math:`\Delta u^t` in mm of every ``l0`` node, ``[N_0, 3]`` (K-step sampling).

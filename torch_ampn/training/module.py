@@ -62,6 +62,8 @@ class AMPNLightningModule(L.LightningModule):
             :class:`~torch_ampn.nn.AMPNSurrogate`.
         huber_delta: Huber form of the loss beyond this normalised error (``None``: the paper's
             MSE); see :class:`~torch_ampn.nn.AMPNSurrogate`.
+        coarse_loss_weight: Weight of the coarse levels' restricted errors in the loss
+            (:func:`~torch_ampn.nn.multilevel_mse`; 0: the paper's MSE).
         lr: Peak learning rate (paper: 1e-4).
         final_lr: Learning rate at the last step (paper: 1e-5).
         warmup_steps: Linear warm-up steps (paper: 1,000).
@@ -100,6 +102,7 @@ class AMPNLightningModule(L.LightningModule):
         center_target: bool = True,
         predict_change: bool = False,
         huber_delta: float | None = None,
+        coarse_loss_weight: float = 0.0,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
@@ -132,6 +135,7 @@ class AMPNLightningModule(L.LightningModule):
             center_target=center_target,
             predict_change=predict_change,
             huber_delta=huber_delta,
+            coarse_loss_weight=coarse_loss_weight,
         )
         self._report: TestReport | None = None
         # torch.compile wrapper of the network, built at the first training step; kept out of the
