@@ -437,17 +437,24 @@ def test_change_target_statistics_and_prediction_by_hand(data_dir, monkeypatch):
     torch.testing.assert_close(captured["t"][ply], want)
 
 
+def _normalised_error(surrogate, data, seed):
+    """``(loss with generator seed, network output - normalised target [N, 3] in float64)``."""
+    loss = surrogate.loss(data, generator=torch.Generator().manual_seed(seed))
+    x_dict, index_dict, e_dict = surrogate.normalized_features(data)
+    target = surrogate.target_norm(data["l0"].target)
+    noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        err = surrogate.model(x_dict, index_dict, e_dict, noise=noise) - target
+    return loss, err.double()
+
+
 def test_huber_loss_of_the_module_by_hand(data_dir):
     """huber_delta: the loss is the Huber form of the squared error on the normalised ply residual."""
     module, dm = _fitted_module(data_dir, huber_delta=0.05)
     s = module.surrogate
     data = list(dm.statistics_samples(8))[-1]
-    loss = s.loss(data, generator=torch.Generator().manual_seed(5))
-    x_dict, index_dict, e_dict = s.normalized_features(data)
-    target = s.target_norm(data["l0"].target)
-    noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(5))
-    with torch.no_grad():
-        err = (s.model(x_dict, index_dict, e_dict, noise=noise) - target)[data["l0"].ply_mask].double()
+    loss, err = _normalised_error(s, data, 5)
+    err = err[data["l0"].ply_mask]
     a = err.abs()
     want = torch.where(a <= 0.05, err * err, 0.1 * a - 0.0025).mean()
     assert (a > 0.05).any() and (a <= 0.05).any()
@@ -461,12 +468,7 @@ def test_coarse_loss_of_the_module_by_hand(data_dir):
     module, dm = _fitted_module(data_dir, coarse_loss_weight=0.5)
     s = module.surrogate
     data = list(dm.statistics_samples(8))[-1]
-    loss = s.loss(data, generator=torch.Generator().manual_seed(5))
-    x_dict, index_dict, e_dict = s.normalized_features(data)
-    target = s.target_norm(data["l0"].target)
-    noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(5))
-    with torch.no_grad():
-        err = (s.model(x_dict, index_dict, e_dict, noise=noise) - target).double()  # [N, 3]
+    loss, err = _normalised_error(s, data, 5)  # err: [N, 3]
     # dense reference: weighted means over |P| with ply-mask weights, level by level
     w = data["l0"].ply_mask.double()
     want = (err.square() * w[:, None]).sum() / (3 * w.sum())

@@ -26,6 +26,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torch_ampn.nn.diffusion import masked_mean
+
 
 def restrict_mean(
     values: Tensor, weight: Tensor, down_index: Tensor, down_weight: Tensor, num_coarse: int
@@ -70,11 +72,11 @@ def multilevel_mse(
     Returns:
         Scalar loss.
     """
-    weight = error.new_ones(error.size(0)) if node_mask is None else node_mask.to(error.dtype)  # [N_0]
-    channels = error.size(-1)
-    loss = (error.square() * weight.unsqueeze(-1)).sum() / (weight.sum() * channels).clamp(min=1.0)
+    loss = masked_mean(error.square(), node_mask)
     if coarse_weight == 0:
         return loss
+    weight = error.new_ones(error.size(0)) if node_mask is None else node_mask.to(error.dtype)  # [N_0]
+    channels = error.size(-1)
     values = error
     for index, edge_weight, num_coarse in down:
         values, weight = restrict_mean(values, weight, index, edge_weight, num_coarse)  # [N_k, C], [N_k]
