@@ -48,6 +48,13 @@ def test_step_sample_fields_by_hand(root):
     assert torch.equal(l0.bc_disp[traj.ply_mask], torch.zeros_like(l0.bc_disp[traj.ply_mask]))
     assert torch.allclose(data.gripper_pos[0], traj.gripper_positions()[1])
     assert data.gripper_force.shape == (1, 1, 3) and int(data.step) == 2 and int(data.traj_index) == 1
+    # the window before (t-2, t-1) = (0, 1): no residual before it, grippers at step 0
+    assert torch.equal(l0.prev_prev_disp, torch.zeros_like(l0.prev_prev_disp))
+    assert torch.allclose(data.prev_gripper_pos[0], traj.gripper_positions()[0])
+    assert torch.allclose(data.prev_gripper_force[0], traj.gripper_force_vectors()[0])
+    later = ds[7]  # t = 4
+    assert torch.equal(later["l0"].prev_prev_disp, traj.pos[2] - traj.pos[1])
+    assert torch.allclose(later.prev_gripper_pos[0], traj.gripper_positions()[2])
     # coarse levels carry their roots' node type and component
     for k in range(1, data.num_levels):
         assert torch.equal(data[f"l{k}"].node_type, traj.node_type[data.fine_index(k)])

@@ -11,8 +11,9 @@ import yaml
 pytest.importorskip("lightning")
 
 import lightning as L  # noqa: E402
+from torch_geometric.data import Batch  # noqa: E402
 
-from torch_ampn.data import NodeType  # noqa: E402
+from torch_ampn.data import NodeType, step_sample  # noqa: E402
 from torch_ampn.data_cli import generate  # noqa: E402
 from torch_ampn.sim import StampFormingConfig  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
@@ -228,6 +229,67 @@ def test_training_noise_has_the_requested_size_on_plies_only(data_dir):
     # the target still leads to the true next position: (x^{t-1} + eps) + target' = x^t
     torch.testing.assert_close(noisy["l0"].pos + noisy["l0"].target, clean_pos + clean_target)
 
+
+
+def test_correlated_noise_is_a_consistent_position_error(data_dir):
+    """With correlated noise the noisy window is the one a rollout with a wrong x^{t-1} sees."""
+    module, dm = _fitted_module(data_dir, position_noise=1e-2, residual_noise=0.0, correlated_noise=True)
+    index = 5
+    window = dm.train_dataset[index]
+    j, t = dm.train_dataset.index(index)
+    traj = dm.train_dataset.trajectories[j]
+    assert t >= 2
+    torch.manual_seed(0)
+    noisy = module.add_training_noise(window)["l0"]
+    ply = noisy.ply_mask
+    eps = noisy.pos - traj.pos[t - 1]
+    assert torch.equal(eps[~ply], torch.zeros_like(eps[~ply]))
+    assert float(eps[ply].std()) == pytest.approx(1e-2 * module.surrogate.position_std, rel=0.15)
+    # the previous residual is measured from the noisy position: x^{t-1} + eps - x^{t-2}
+    torch.testing.assert_close(noisy.pos - noisy.prev_disp, traj.pos[t - 2])
+    # and the target still leads to the true x^t
+    torch.testing.assert_close(noisy.pos + noisy.target, traj.pos[t])
+    # residual noise comes on top, independently
+    module, _ = _fitted_module(data_dir, position_noise=1e-2, residual_noise=1e-3, correlated_noise=True)
+    torch.manual_seed(0)
+    noisy = module.add_training_noise(dm.train_dataset[index])["l0"]
+    extra = noisy.prev_disp - (noisy.pos - traj.pos[t - 2])
+    assert float(extra[ply].std()) == pytest.approx(1e-3 * module.surrogate.position_std, rel=0.15)
+
+
+def test_pushforward_starts_from_the_models_own_prediction(data_dir):
+    """The window (t-2, t-1) rebuilt from a window's fields is step_sample's; its prediction moves x^{t-1}."""
+    module, dm = _fitted_module(data_dir, pushforward=1.0)
+    dataset = dm.train_dataset
+    first, later = 0, 5  # windows at t = 1 (nothing to push forward) and t = 6
+    j, t = dataset.index(later)
+    assert dataset.index(first)[1] == 1 and t >= 3
+    traj = dataset.trajectories[j]
+    window = dataset[later]
+    # reference: the window (t-2, t-1) made from the trajectory, with window t's contact edges
+    prior = step_sample(traj, t - 1, dataset.hierarchies(traj))
+    prior.traj_index = window.traj_index
+    for key in window.edge_types:
+        if key[1] == "contact":
+            prior[key].edge_index = window[key].edge_index
+    torch.manual_seed(3)
+    with torch.no_grad():
+        reference = module.surrogate.predict_residual(Batch.from_data_list([dataset[first], prior]))
+    batch = Batch.from_data_list([dataset[first], window])
+    clean = batch["l0"].pos.clone(), batch["l0"].prev_disp.clone(), batch["l0"].target.clone()
+    torch.manual_seed(3)
+    pushed = module.pushforward_inputs(batch)["l0"]
+    ply, in_later = pushed.ply_mask, pushed.batch == 1
+    error = (reference - clean[1]) * (ply & in_later)[:, None]  # the model's error of du^{t-1}
+    assert float(error.abs().max()) > 0
+    torch.testing.assert_close(pushed.pos, clean[0] + error)
+    torch.testing.assert_close(pushed.prev_disp, clean[1] + error)
+    torch.testing.assert_close(pushed.target, clean[2] - error)
+    # still consistent with the trajectory: x^{t-2} behind, x^t ahead
+    torch.testing.assert_close(pushed.pos[in_later] - pushed.prev_disp[in_later], traj.pos[t - 2])
+    torch.testing.assert_close(pushed.pos[in_later] + pushed.target[in_later], traj.pos[t])
+    with pytest.raises(ValueError, match="pushforward"):
+        AMPNLightningModule(**SMALL_MODEL, pushforward=1.5)
 
 def test_robin_mode_trains_and_samples(data_dir):
     torch.manual_seed(0)

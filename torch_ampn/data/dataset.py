@@ -94,11 +94,16 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
 
     * ``pos0`` ``[N, 3]``: initial positions; ``pos`` ``[N, 3]``: positions :math:`x^{t-1}`;
     * ``prev_disp`` ``[N, 3]``: previous residual :math:`x^{t-1} - x^{t-2}` (zero at ``t = 1``);
+    * ``prev_prev_disp`` ``[N, 3]``: the residual before, :math:`x^{t-2} - x^{t-3}` (zero for
+      ``t < 3``), which with ``prev_disp`` and the ``prev_gripper_*`` fields makes the
+      window ``(t-2, t-1)`` (the pushforward training of
+      :class:`~torch_ampn.training.AMPNLightningModule`);
     * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies;
     * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}`;
     * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level.
 
     Graph level: ``gripper_pos`` and ``gripper_force`` ``[1, G, 3]`` at :math:`t-1`,
+    ``prev_gripper_pos`` and ``prev_gripper_force`` at :math:`\max(t-2, 0)`,
     ``step`` ``[1]`` (= t) and ``traj_index`` is left to the caller.
     """
     if not 1 <= t <= traj.num_steps:
@@ -110,12 +115,15 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
     l0.pos0 = traj.pos[0]
     l0.pos = x_prev
     l0.prev_disp = x_prev - traj.pos[t - 2] if t >= 2 else torch.zeros_like(x_prev)
+    l0.prev_prev_disp = traj.pos[t - 2] - traj.pos[t - 3] if t >= 3 else torch.zeros_like(x_prev)
     l0.bc_disp = torch.where(ply[:, None], torch.zeros_like(x_prev), x_next - x_prev)
     l0.target = x_next - x_prev
     l0.fiber = traj.fiber
     l0.ply_mask = ply
     data.gripper_pos = traj.gripper_positions()[t - 1][None]
     data.gripper_force = traj.gripper_force_vectors()[t - 1][None]
+    data.prev_gripper_pos = traj.gripper_positions()[max(t - 2, 0)][None]
+    data.prev_gripper_force = traj.gripper_force_vectors()[max(t - 2, 0)][None]
     data.step = torch.tensor([t])
     return data
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,19 @@ class AMPNLightningModule(L.LightningModule):
         correct_target: Subtract the position noise from the target residual, so that the model learns
             to pull a perturbed node back to the true next position (as MeshGraphNets do); only
             matters for noise levels well above the paper's.
+        correlated_noise: Add the position noise to the previous residual too, as it is when
+            :math:`x^{t-1}` comes from a rollout: a position error :math:`\epsilon` of the last
+            step is also an error of :math:`\Delta u^{t-1} = x^{t-1} - x^{t-2}` (the noise of
+            MeshGraphNets, where velocities are differences of noisy positions). With
+            ``correct_target`` the model then learns to undo an error of its last step in
+            both inputs. ``False`` (the paper): independent noise on the two inputs.
+        pushforward: Probability that a training batch starts from the model's own one-step
+            prediction of :math:`x^{t-1}` instead of the true one (the pushforward trick of
+            Brandstetter et al., 2022): the network predicts :math:`\Delta u^{t-1}` from the
+            window ``(t-2, t-1)`` without gradient, its error moves the ply positions and the
+            previous residual, and the target becomes :math:`x^t - \hat x^{t-1}`, so that the
+            model learns to correct the errors a rollout feeds it. Windows at ``t = 1`` stay
+            as they are. Costs one forward pass per affected batch; 0 (the paper): off.
         statistics_samples: Training windows used for the normalisation statistics.
         rollout_seed: Seed of the noise input during rollouts (rollouts are reproducible).
         touch_radii: Radii (mm) tried for the rigid-with-punch baseline; the best is reported.
@@ -109,6 +123,8 @@ class AMPNLightningModule(L.LightningModule):
         position_noise: float = 1e-5,
         residual_noise: float = 1e-6,
         correct_target: bool = True,
+        correlated_noise: bool = False,
+        pushforward: float = 0.0,
         statistics_samples: int = 1000,
         rollout_seed: int = 0,
         touch_radii: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0),
@@ -117,6 +133,8 @@ class AMPNLightningModule(L.LightningModule):
         compile_network: bool = False,
     ) -> None:
         super().__init__()
+        if not 0.0 <= pushforward <= 1.0:
+            raise ValueError(f"pushforward is a probability in [0, 1], got {pushforward}")
         self.save_hyperparameters()
         self.surrogate = AMPNSurrogate(
             num_components=num_components,
@@ -206,7 +224,9 @@ class AMPNLightningModule(L.LightningModule):
     def add_training_noise(self, data: HierarchicalData) -> HierarchicalData:
         r"""Perturb ply positions and previous residuals with N(0, (noise :math:`\sigma_x`)^2), in place.
 
-        With ``correct_target`` the target residual becomes :math:`x^t - (x^{t-1} + \epsilon)`.
+        With ``correct_target`` the target residual becomes :math:`x^t - (x^{t-1} + \epsilon)`;
+        with ``correlated_noise`` the previous residual gets :math:`\epsilon` as well (plus its
+        own ``residual_noise``).
         """
         hp = self.hparams
         fine = data["l0"]
@@ -217,8 +237,38 @@ class AMPNLightningModule(L.LightningModule):
             fine.pos = fine.pos + eps
             if hp.correct_target:
                 fine.target = fine.target - eps
+            if hp.correlated_noise:
+                fine.prev_disp = fine.prev_disp + eps
         if hp.residual_noise > 0:
             fine.prev_disp = fine.prev_disp + ply * (hp.residual_noise * sigma_x) * torch.randn_like(fine.pos)
+        return data
+
+    def pushforward_inputs(self, data: HierarchicalData) -> HierarchicalData:
+        r"""Replace the true :math:`x^{t-1}` of ply nodes by the prediction from :math:`x^{t-2}`, in place.
+
+        The window ``(t-2, t-1)`` is rebuilt from the fields of :func:`~torch_ampn.data.step_sample`
+        (``prev_disp``, ``prev_prev_disp``, ``prev_gripper_*``; its contact edges are those of
+        :math:`x^{t-1}`); with the predicted :math:`\widehat{\Delta u}^{t-1}` (no gradient) and
+        its error :math:`e = \widehat{\Delta u}^{t-1} - \Delta u^{t-1}` on ply nodes of windows
+        with ``t >= 2``: ``pos`` :math:`+ e`, ``prev_disp`` :math:`+ e`, ``target`` :math:`- e`.
+        """
+        fine = data["l0"]
+        prior = copy.copy(data)
+        prior_fine = prior["l0"]
+        tool = ~fine.ply_mask[:, None]  # [N, 1]
+        prior_fine.pos = fine.pos - fine.prev_disp  # x^{t-2}
+        prior_fine.prev_disp = fine.prev_prev_disp
+        prior_fine.bc_disp = torch.where(tool, fine.prev_disp, torch.zeros_like(fine.prev_disp))
+        prior.gripper_pos = data.prev_gripper_pos
+        prior.gripper_force = data.prev_gripper_force
+        with torch.no_grad():
+            predicted = self.surrogate.predict_residual(prior).to(fine.pos.dtype)  # [N, 3]
+        step = data.step[fine.batch] if "batch" in fine else data.step.expand(fine.num_nodes)  # [N]
+        moved = fine.ply_mask & (step >= 2)  # [N]
+        error = torch.where(moved[:, None], predicted - fine.prev_disp, torch.zeros_like(predicted))
+        fine.pos = fine.pos + error
+        fine.prev_disp = fine.prev_disp + error
+        fine.target = fine.target - error
         return data
 
     def training_loss(self, data: HierarchicalData) -> Tensor:
@@ -250,7 +300,9 @@ class AMPNLightningModule(L.LightningModule):
         return loss
 
     def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
-        """One next-step residual loss on a batch of windows."""
+        """One next-step residual loss on a batch of windows (pushforward, then noise)."""
+        if self.hparams.pushforward > 0 and float(torch.rand(())) < self.hparams.pushforward:
+            batch = self.pushforward_inputs(batch)
         loss = self.training_loss(self.add_training_noise(batch))
         self.log("train/loss", loss, prog_bar=True, batch_size=batch.num_graphs)
         return loss
