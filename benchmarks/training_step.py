@@ -5,7 +5,9 @@ Batches of 4 cached training windows from a dataset folder, as ``torch-ampn fit`
 quickstart model; rounds are interleaved so that all variants see the same machine state.
 ``--compile`` adds the quickstart model with ``compile_network=True`` (its training step's
 network under ``torch.compile(dynamic=True)``, as the quickstart config runs it; the first
-step, which compiles, is reported separately). Prints a table and writes JSON.
+step, which compiles, is reported separately). "quickstart" leaves out the config's
+pushforward (``pushforward=0.5`` is the config: an extra forward pass on about half the
+steps; ``pushforward=1`` on every step). Prints a table and writes JSON.
 
     python benchmarks/training_step.py data/default
     python benchmarks/training_step.py data/default --compile
@@ -24,7 +26,8 @@ import torch
 
 QUICKSTART = dict(
     hidden_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1,
-    up_layers=1, contact_radius=12.0, contact_k=3, position_noise=3e-4, residual_noise=1e-4,
+    up_layers=1, contact_radius=12.0, contact_k=3, position_noise=1e-3, residual_noise=1e-4,
+    correlated_noise=True,
 )  # fmt: skip
 VARIANTS: dict[str, dict] = {
     "quickstart": {},
@@ -33,6 +36,8 @@ VARIANTS: dict[str, dict] = {
     "hidden=48": {"hidden_channels": 48},
     "hidden=64": {"hidden_channels": 64},
     "pre/post_layers=2": {"pre_layers": 2, "post_layers": 2},
+    "pushforward=0.5": {"pushforward": 0.5},
+    "pushforward=1": {"pushforward": 1.0},
 }
 
 
@@ -61,7 +66,7 @@ class QuickstartCase:
             self.compile_s = time.perf_counter() - start
 
     def step(self, batch) -> None:
-        loss = self.model.training_loss(self.model.add_training_noise(batch.clone()))
+        loss = self.model.training_loss(self.model.training_inputs(batch.clone()))
         self.optimizer.zero_grad()
         loss.backward()
         self.optimizer.step()

@@ -85,7 +85,8 @@ class AMPNLightningModule(L.LightningModule):
             window ``(t-2, t-1)`` without gradient, its error moves the ply positions and the
             previous residual, and the target becomes :math:`x^t - \hat x^{t-1}`, so that the
             model learns to correct the errors a rollout feeds it. Windows at ``t = 1`` stay
-            as they are. Costs one forward pass per affected batch; 0 (the paper): off.
+            as they are. Costs one forward pass per affected batch (``K`` in ROBIN mode);
+            0 (the paper): off.
         statistics_samples: Training windows used for the normalisation statistics.
         rollout_seed: Seed of the noise input during rollouts (rollouts are reproducible).
         touch_radii: Radii (mm) tried for the rigid-with-punch baseline; the best is reported.
@@ -299,11 +300,15 @@ class AMPNLightningModule(L.LightningModule):
         object.__setattr__(self, "_compiled_network", compiled)
         return loss
 
-    def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
-        """One next-step residual loss on a batch of windows (pushforward, then noise)."""
+    def training_inputs(self, batch: HierarchicalData) -> HierarchicalData:
+        """The batch as the loss sees it, in place: pushed forward (probability ``pushforward``), noised."""
         if self.hparams.pushforward > 0 and float(torch.rand(())) < self.hparams.pushforward:
             batch = self.pushforward_inputs(batch)
-        loss = self.training_loss(self.add_training_noise(batch))
+        return self.add_training_noise(batch)
+
+    def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
+        """One next-step residual loss on a batch of windows (see :meth:`training_inputs`)."""
+        loss = self.training_loss(self.training_inputs(batch))
         self.log("train/loss", loss, prog_bar=True, batch_size=batch.num_graphs)
         return loss
 
