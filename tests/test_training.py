@@ -230,7 +230,6 @@ def test_training_noise_has_the_requested_size_on_plies_only(data_dir):
     torch.testing.assert_close(noisy["l0"].pos + noisy["l0"].target, clean_pos + clean_target)
 
 
-
 def test_correlated_noise_is_a_consistent_position_error(data_dir):
     """With correlated noise the noisy window is the one a rollout with a wrong x^{t-1} sees."""
     module, dm = _fitted_module(data_dir, position_noise=1e-2, residual_noise=0.0, correlated_noise=True)
@@ -290,6 +289,7 @@ def test_pushforward_starts_from_the_models_own_prediction(data_dir):
     torch.testing.assert_close(pushed.pos[in_later] + pushed.target[in_later], traj.pos[t])
     with pytest.raises(ValueError, match="pushforward"):
         AMPNLightningModule(**SMALL_MODEL, pushforward=1.5)
+
 
 def test_robin_mode_trains_and_samples(data_dir):
     torch.manual_seed(0)

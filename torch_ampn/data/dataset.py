@@ -120,10 +120,11 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
     l0.target = x_next - x_prev
     l0.fiber = traj.fiber
     l0.ply_mask = ply
-    data.gripper_pos = traj.gripper_positions()[t - 1][None]
-    data.gripper_force = traj.gripper_force_vectors()[t - 1][None]
-    data.prev_gripper_pos = traj.gripper_positions()[max(t - 2, 0)][None]
-    data.prev_gripper_force = traj.gripper_force_vectors()[max(t - 2, 0)][None]
+    gripper_pos, gripper_force = traj.gripper_positions(), traj.gripper_force_vectors()  # [T+1, G, 3]
+    data.gripper_pos = gripper_pos[t - 1][None]
+    data.gripper_force = gripper_force[t - 1][None]
+    data.prev_gripper_pos = gripper_pos[max(t - 2, 0)][None]
+    data.prev_gripper_force = gripper_force[max(t - 2, 0)][None]
     data.step = torch.tensor([t])
     return data
 
