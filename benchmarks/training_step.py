@@ -26,12 +26,12 @@ import torch
 
 QUICKSTART = dict(
     hidden_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1,
-    up_layers=1, contact_radius=12.0, contact_k=3, position_noise=1e-3, residual_noise=1e-4,
+    up_layers=1, contact_radius=12.0, contact_k=1, position_noise=1e-3, residual_noise=1e-4,
     correlated_noise=True,
 )  # fmt: skip
 VARIANTS: dict[str, dict] = {
     "quickstart": {},
-    "contact_k=1": {"contact_k": 1},
+    "contact_k=3": {"contact_k": 3},
     "solve_layers=4": {"solve_layers": 4},
     "hidden=48": {"hidden_channels": 48},
     "hidden=64": {"hidden_channels": 64},
