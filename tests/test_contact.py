@@ -18,7 +18,7 @@ from torch_ampn.transforms import (
     torch_cluster_available,
 )
 from torch_ampn.transforms._grid import CellGrid
-from torch_ampn.transforms.contact import auto_cell_size
+from torch_ampn.transforms._grid_search import auto_cell_size
 
 CUDA = pytest.param(
     "cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")]

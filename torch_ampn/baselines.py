@@ -14,7 +14,7 @@ from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.node_type import NodeType
-from torch_ampn.transforms.contact import component_radius_table
+from torch_ampn.transforms.radius import component_radius_table
 
 
 def static_plies(data: HierarchicalData) -> Tensor:

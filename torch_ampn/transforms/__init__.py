@@ -1,12 +1,12 @@
 """Graph transforms: contact edges between components."""
 
-from torch_ampn.transforms.contact import (
-    ComponentRadiusGraph,
+from torch_ampn.transforms._cluster import torch_cluster_available
+from torch_ampn.transforms.contact import ComponentRadiusGraph
+from torch_ampn.transforms.radius import (
     component_radius_graph,
     component_radius_table,
     plain_radius_graph,
     table_to_edge_index,
-    torch_cluster_available,
 )
 
 __all__ = [

@@ -1,6 +1,6 @@
 """A cell grid for exact fixed-radius and k-nearest neighbour search in pure PyTorch.
 
-Private helper of :mod:`torch_ampn.transforms.contact`. Every node belongs to a *group*
+Private helper of :mod:`torch_ampn.transforms._grid_search`. Every node belongs to a *group*
 (for contact edges: a (graph, component) pair). Nodes are sorted by an integer key made of
 their group, the cells of their *column* (cubic cells of edge ``h`` along one or two box
 axes) and a fine sub-cell along the *run* axis, so that the nodes of one group, one column
