@@ -1,5 +1,6 @@
 """Physical sanity of the embedded stamp-forming simulator on a coarse run."""
 
+import json
 import math
 import os
 
@@ -183,3 +184,21 @@ def test_unstable_or_invalid_settings_are_refused():
         simulate(StampFormingConfig(ply_cells=1))
     with pytest.raises(ValueError, match="gripper_force_range"):
         simulate(StampFormingConfig(gripper_force_range=(10.0, 0.0)))
+
+
+@pytest.mark.parametrize("cfg", [StampFormingConfig(), StampFormingConfig.paper(), CFG])
+def test_config_from_dict_inverts_to_dict(cfg):
+    assert StampFormingConfig.from_dict(cfg.to_dict()) == cfg
+    as_json = json.loads(json.dumps(cfg.to_dict()))  # tuples become lists in JSON
+    assert StampFormingConfig.from_dict(as_json) == cfg
+
+
+def test_config_from_dict_overrides_a_base_and_refuses_unknown_keys():
+    overrides = {"ply_cells": 24, "punch_cells": [5, 6]}
+    cfg = StampFormingConfig.from_dict(overrides, base=StampFormingConfig.paper())
+    assert cfg == StampFormingConfig.paper(ply_cells=24, punch_cells=(5, 6))
+    assert StampFormingConfig.from_dict({"num_steps": 7}) == StampFormingConfig(num_steps=7)
+    with pytest.raises(ValueError, match="unknown setting\\(s\\) 'ply_cell', 'stroek'"):
+        StampFormingConfig.from_dict({"stroek": 1.0, "ply_cells": 4, "ply_cell": 4})
+    with pytest.raises(TypeError, match="must be a mapping"):
+        StampFormingConfig.from_dict([("ply_cells", 4)])

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
 
 
 @dataclass
@@ -75,6 +77,31 @@ class StampFormingConfig:
         values = dict(ply_cells=40, punch_cells=(66, 65), die_cells=(75, 68))
         values.update(overrides)
         return cls(**values)
+
+    @classmethod
+    def from_dict(
+        cls, values: Mapping[str, Any], base: StampFormingConfig | None = None
+    ) -> StampFormingConfig:
+        """Settings from a plain ``dict``, e.g. of JSON or YAML (the inverse of :meth:`to_dict`).
+
+        Lists become tuples. Settings missing from ``values`` are those of ``base`` (default:
+        the defaults). The result is not validated (see :meth:`validate`).
+
+        Args:
+            values: Setting name -> value.
+            base: The settings that ``values`` override.
+
+        Raises:
+            TypeError: If ``values`` is not a mapping.
+            ValueError: For keys that are not settings (the message names them).
+        """
+        if not isinstance(values, Mapping):
+            raise TypeError(f"StampFormingConfig: settings must be a mapping, got {type(values).__name__}")
+        unknown = sorted(str(k) for k in set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"StampFormingConfig: unknown setting(s) {', '.join(map(repr, unknown))}")
+        merged = {**base.to_dict(), **values} if base is not None else dict(values)
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()})
 
     @property
     def num_plies(self) -> int:

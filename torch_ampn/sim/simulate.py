@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -294,6 +295,36 @@ def _fiber_directions(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int)
     return fiber
 
 
+def _trajectory(
+    mesh: MultiComponentMesh,
+    plies: Tensor,
+    times: Tensor,
+    tool_frames: Tensor,
+    fiber: Tensor,
+    gripper_nodes: Tensor,
+    gripper_anchor: Tensor,
+    gripper_force: Tensor,
+    **meta: Any,
+) -> Trajectory:
+    """The float32 trajectory of ply positions ``plies`` ``[T+1, n, 3]`` and tool positions ``tool_frames``.
+
+    ``meta`` follows ``simulator="torch_ampn.sim"`` in the trajectory's ``meta``, in the given order.
+    """
+    return Trajectory(
+        pos=torch.cat([plies, tool_frames], 1).float(),
+        time=times.float(),
+        cells=[c.clone() for c in mesh.cells],
+        component=mesh.component.clone(),
+        node_type=mesh.node_type.clone(),
+        fiber=fiber.float(),
+        names=list(mesh.names),
+        gripper_nodes=gripper_nodes,
+        gripper_anchor=gripper_anchor.float(),
+        gripper_force=gripper_force.float(),
+        meta=dict(simulator="torch_ampn.sim", **meta),
+    )
+
+
 def process_trajectory(
     config: StampFormingConfig | None = None,
     gripper_positions: Sequence[float] | Tensor | None = None,
@@ -339,25 +370,19 @@ def process_trajectory(
     nodes, anchors = _gripper_layout(cfg, mesh.pos[:n], n // cfg.num_plies, where)
     times, tool_frames = _tool_motion(cfg, mesh, n)
     plies = mesh.pos[:n].expand(cfg.num_steps + 1, -1, -1)
-    meta = dict(
-        simulator="torch_ampn.sim",
+    return _trajectory(
+        mesh,
+        plies,
+        times,
+        tool_frames,
+        _fiber_directions(cfg, mesh, n),
+        nodes,
+        anchors,
+        force,
         ground_truth=False,
         config=cfg.to_dict(),
         gripper_edge_fraction=where.tolist(),
         **({} if seed is None else {"seed": int(seed)}),
-    )
-    return Trajectory(
-        pos=torch.cat([plies, tool_frames], 1).float(),
-        time=times.float(),
-        cells=[c.clone() for c in mesh.cells],
-        component=mesh.component.clone(),
-        node_type=mesh.node_type.clone(),
-        fiber=_fiber_directions(cfg, mesh, n).float(),
-        names=list(mesh.names),
-        gripper_nodes=nodes,
-        gripper_anchor=anchors.float(),
-        gripper_force=force.float(),
-        meta=meta,
     )
 
 
@@ -416,26 +441,20 @@ def simulate_batch(
     out = []
     for b, seed in enumerate(seeds):
         where, force = processes[b]
-        meta = dict(
-            simulator="torch_ampn.sim",
-            seed=int(seed),
-            config=cfg.to_dict(),
-            substeps=model.substeps,
-            gripper_edge_fraction=where.tolist(),
-        )
         out.append(
-            Trajectory(
-                pos=torch.cat([ply_frames[:, b], tool_frames], 1).float(),
-                time=times.float(),
-                cells=[c.clone() for c in mesh.cells],
-                component=mesh.component.clone(),
-                node_type=mesh.node_type.clone(),
-                fiber=fiber.float(),
-                names=list(mesh.names),
-                gripper_nodes=model.gripper_nodes[b],
-                gripper_anchor=model.anchors[b].float(),
-                gripper_force=force.float(),
-                meta=meta,
+            _trajectory(
+                mesh,
+                ply_frames[:, b],
+                times,
+                tool_frames,
+                fiber,
+                model.gripper_nodes[b],
+                model.anchors[b],
+                force,
+                seed=int(seed),
+                config=cfg.to_dict(),
+                substeps=model.substeps,
+                gripper_edge_fraction=where.tolist(),
             )
         )
     return out

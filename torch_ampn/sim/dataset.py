@@ -1,0 +1,124 @@
+"""Datasets made with the embedded simulator: resumable, parallel generation of the split folders.
+
+Layout: ``<out>/{train,val,test}/traj_<seed>.pt`` (see :mod:`torch_ampn.data.trajectory` for
+the file format) and ``<out>/dataset.json`` with the simulator settings. Seeds: train ``0..``,
+val ``100000..``, test ``200000..``, so that adding trajectories to one split never changes
+another.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+from pathlib import Path
+
+import torch
+
+from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
+from torch_ampn.sim.config import StampFormingConfig
+from torch_ampn.sim.simulate import simulate_batch
+
+SPLIT_SEED_OFFSET = {"train": 0, "val": 100_000, "test": 200_000}
+
+
+def trajectory_path(root: Path, split: str, seed: int) -> Path:
+    """Where the trajectory of ``seed`` in ``split`` lives."""
+    return root / split / f"traj_{seed:06d}.pt"
+
+
+def _is_valid(path: Path) -> bool:
+    try:
+        Trajectory.load(path)
+    except (OSError, TrajectoryFormatError):
+        return False
+    return True
+
+
+def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], str, bool]) -> list[str]:
+    """Worker: simulate a chunk of (split, seed) jobs together and save each trajectory."""
+    cfg_dict, jobs, root, compile_ = args
+    torch.set_num_threads(1)
+    cfg = StampFormingConfig.from_dict(cfg_dict)
+    trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_)
+    out = []
+    for (split, seed), traj in zip(jobs, trajs, strict=True):
+        path = trajectory_path(Path(root), split, seed)
+        traj.save(path)
+        out.append(str(path))
+    return out
+
+
+def generate_dataset(
+    out: Path,
+    num_train: int,
+    num_val: int,
+    num_test: int,
+    resolution: str = "coarse",
+    workers: int | None = None,
+    batch: int = 4,
+    compile: bool = True,
+    progress: bool = True,
+    config: StampFormingConfig | None = None,
+) -> list[Path]:
+    """Simulate the missing trajectories of a dataset (existing valid files are kept).
+
+    Args:
+        out: Dataset folder.
+        num_train: Trajectories in the train split (seeds ``0 ..``).
+        num_val: Trajectories in the val split (seeds ``100000 ..``).
+        num_test: Trajectories in the test split (seeds ``200000 ..``).
+        resolution: ``"coarse"`` (default settings) or ``"paper"`` (3,200 triangles per ply).
+        workers: Processes (default: CPU cores).
+        batch: Trajectories simulated together in one process.
+        compile: ``torch.compile`` the solver step.
+        progress: Show a progress bar.
+        config: Explicit simulator settings (overrides ``resolution``).
+
+    Returns:
+        The paths of all trajectories of the dataset.
+
+    Raises:
+        ValueError: For an unknown ``resolution``, or a folder whose ``dataset.json`` holds
+            other simulator settings.
+    """
+    if resolution not in ("coarse", "paper"):
+        raise ValueError(f"resolution must be 'coarse' or 'paper', got {resolution!r}")
+    cfg = config or (StampFormingConfig.paper() if resolution == "paper" else StampFormingConfig())
+    out.mkdir(parents=True, exist_ok=True)
+    spec_path = out / "dataset.json"
+    spec = json.loads(json.dumps(dict(resolution=resolution, simulator=cfg.to_dict())))
+    if spec_path.exists():
+        old = json.loads(spec_path.read_text())
+        if old.get("simulator") != spec["simulator"]:
+            raise ValueError(f"{spec_path}: the folder holds a dataset made with other simulator settings")
+    tmp = spec_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(spec, indent=2))
+    os.replace(tmp, spec_path)
+
+    wanted = [
+        (split, SPLIT_SEED_OFFSET[split] + i)
+        for split, count in (("train", num_train), ("val", num_val), ("test", num_test))
+        for i in range(count)
+    ]
+    todo = [(s, seed) for s, seed in wanted if not _is_valid(trajectory_path(out, s, seed))]
+    chunks = [todo[i : i + batch] for i in range(0, len(todo), batch)]
+    workers = max(1, min(workers or os.cpu_count() or 1, len(chunks) or 1))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(todo), desc="generate", unit="traj")
+        bar.write(f"{len(wanted) - len(todo)} of {len(wanted)} trajectories exist; simulating {len(todo)}")
+    jobs = [(cfg.to_dict(), chunk, str(out), compile) for chunk in chunks]
+    if workers == 1:
+        results = map(_simulate_chunk, jobs)
+        for done in results:
+            bar and bar.update(len(done))
+    elif jobs:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for done in pool.imap_unordered(_simulate_chunk, jobs):
+                bar and bar.update(len(done))
+    if bar is not None:
+        bar.close()
+    return [trajectory_path(out, s, seed) for s, seed in wanted]
