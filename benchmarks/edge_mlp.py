@@ -1,4 +1,4 @@
-"""Benchmark: an edge MLP on concatenated inputs versus ``MLP.forward_edges``.
+"""Benchmark: an edge LayerNormMLP on concatenated inputs versus ``LayerNormMLP.forward_edges``.
 
 Both compute ``f(cat([x_i, x_j, e_ij]))`` for every edge, the edge update of every AMPN
 layer. The plain form gathers and concatenates ``[E, 3d]`` and multiplies it by ``W_1``;
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn.nn import MLP
+from torch_ampn.nn import LayerNormMLP
 
 
 def _time(fn, repeats: int, device: torch.device) -> float:
@@ -47,7 +47,7 @@ def _time(fn, repeats: int, device: torch.device) -> float:
 def run_case(num_nodes: int, num_edges: int, channels: int, repeats: int, device: torch.device) -> dict:
     """Time both forms on random features of one size; returns a result row."""
     g = torch.Generator().manual_seed(0)
-    mlp = MLP(3 * channels, channels, hidden_channels=channels).to(device)
+    mlp = LayerNormMLP(3 * channels, channels, hidden_channels=channels).to(device)
     x = torch.randn(num_nodes, channels, generator=g).to(device).requires_grad_()
     e = torch.randn(num_edges, channels, generator=g).to(device).requires_grad_()
     edge_index = torch.randint(0, num_nodes, (2, num_edges), generator=g).to(device)
@@ -75,33 +75,37 @@ def run_case(num_nodes: int, num_edges: int, channels: int, repeats: int, device
 
 
 def _concatenated_forward_edges(
-    self: MLP, x_dst: torch.Tensor, x_src: torch.Tensor, edge_attr: torch.Tensor, edge_index: torch.Tensor
+    self: LayerNormMLP,
+    x_dst: torch.Tensor,
+    x_src: torch.Tensor,
+    edge_attr: torch.Tensor,
+    edge_index: torch.Tensor,
 ) -> torch.Tensor:
     """The plain form, with ``forward_edges``'s signature (to swap it in)."""
     return self(torch.cat([x_dst[edge_index[1]], x_src[edge_index[0]], edge_attr], dim=-1))
 
 
 def run_training_steps(data_dir: str, rounds: int = 4, steps: int = 17) -> dict:
-    """Median ms per quickstart training step with each edge-MLP form, interleaved rounds."""
+    """Median ms per quickstart training step with each edge-LayerNormMLP form, interleaved rounds."""
     from training_step import QuickstartCase  # benchmarks/training_step.py, next to this script
 
     case = QuickstartCase(data_dir, {}, steps + 3, compile_network=False)
     batches, step = case.batches, case.step
 
-    forms = {"concatenated": _concatenated_forward_edges, "forward_edges": MLP.forward_edges}
+    forms = {"concatenated": _concatenated_forward_edges, "forward_edges": LayerNormMLP.forward_edges}
     times: dict[str, list[float]] = {name: [] for name in forms}
     try:
         for batch in batches[:3]:
             step(batch)
         for r in range(rounds):
             for name in list(forms) if r % 2 == 0 else list(forms)[::-1]:
-                MLP.forward_edges = forms[name]
+                LayerNormMLP.forward_edges = forms[name]
                 start = time.perf_counter()
                 for batch in batches[3:]:
                     step(batch)
                 times[name].append((time.perf_counter() - start) / steps)
     finally:
-        MLP.forward_edges = forms["forward_edges"]
+        LayerNormMLP.forward_edges = forms["forward_edges"]
     cat_s, split_s = statistics.median(times["concatenated"]), statistics.median(times["forward_edges"])
     return {"concatenated_s": cat_s, "forward_edges_s": split_s, "speedup": cat_s / split_s, "rounds": times}
 

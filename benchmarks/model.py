@@ -117,7 +117,8 @@ def time_steps(step, repeats: int, warmup: int, device: torch.device) -> list[fl
 def run_variant(args, data, device, num_levels: int, dtype: str, compiled: bool) -> dict:
     h, x_dict, e_dict, ei_dict, fine_in = data
     torch.manual_seed(0)
-    model = AMPN(fine_in, hidden_channels=args.hidden, num_levels=num_levels).to(device)
+    width = dict(hidden_channels=args.hidden, mlp_channels=args.hidden)
+    model = AMPN(fine_in, **width, num_levels=num_levels, noise_channels=3).to(device)
     fn = torch.compile(model) if compiled else model
     noise = torch.randn(x_dict["l0"].size(0), 3, device=device)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=dtype == "bf16")

@@ -56,7 +56,9 @@ def run(args: argparse.Namespace) -> dict:
     traj = process_trajectory(cfg, seed=0)
     levels = args.levels or (4 if args.resolution == "paper" else 3)
     hierarchy = HierarchyCache(None, max_levels=levels)(traj).to(device)
-    surrogate = AMPNSurrogate(hidden_channels=args.hidden, num_levels=levels, contact_radius=args.radius)
+    surrogate = AMPNSurrogate(
+        hidden_channels=args.hidden, mlp_channels=args.hidden, num_levels=levels, contact_radius=args.radius
+    )
     surrogate.model.decoder.weight.data.zero_()
     surrogate.model.decoder.bias.data.zero_()
     surrogate.freeze_statistics()

@@ -25,16 +25,16 @@ from pathlib import Path
 import torch
 
 QUICKSTART = dict(
-    hidden_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1,
-    up_layers=1, contact_radius=12.0, contact_k=1, position_noise=1e-3, residual_noise=1e-4,
+    hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1,
+    post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1, position_noise=1e-3, residual_noise=1e-4,
     correlated_noise=True,
 )  # fmt: skip
 VARIANTS: dict[str, dict] = {
     "quickstart": {},
     "contact_k=3": {"contact_k": 3},
     "solve_layers=4": {"solve_layers": 4},
-    "hidden=48": {"hidden_channels": 48},
-    "hidden=64": {"hidden_channels": 64},
+    "hidden=48": {"hidden_channels": 48, "mlp_channels": 48},
+    "hidden=64": {"hidden_channels": 64, "mlp_channels": 64},
     "pre/post_layers=2": {"pre_layers": 2, "post_layers": 2},
     "pushforward=0.5": {"pushforward": 0.5},
     "pushforward=1": {"pushforward": 1.0},

@@ -404,8 +404,48 @@ def test_transform_static_tables_and_repr():
         assert torch.equal(table_to_edge_index(nbr, mask), out.contact(level).edge_index)
     assert repr(ComponentRadiusGraph()) == (
         "ComponentRadiusGraph(r=3.0, k=3, level_radius_scale=None, num_components=None, "
-        "static=False, backend='auto', merge_levels=False)"
+        "static=False, backend='auto', merge_levels=False, mode='component_knn', positions='current')"
     )
+
+
+def test_transform_radius_mode_links_every_pair_within_r_on_every_level():
+    """The conventional radius graph: all pairs (j, i), j != i, within r, any component; brute force."""
+    h = _hierarchy()
+    out = ComponentRadiusGraph(r=0.9, mode="radius")(h)
+    knn = ComponentRadiusGraph(r=0.9, k=2)(h)
+    for level in range(h.num_levels):
+        pos = h["l0"].pos[h.fine_index(level)].double()
+        dist = torch.cdist(pos, pos)
+        target, source = torch.nonzero((dist <= 0.9) & ~torch.eye(len(pos), dtype=torch.bool), as_tuple=True)
+        expected = {(int(j), int(i)) for j, i in zip(source, target, strict=True)}
+        ei = out.contact(level).edge_index
+        assert {(int(j), int(i)) for j, i in ei.t()} == expected and ei.size(1) == len(expected)
+        assert ei.size(1) >= knn.contact(level).edge_index.size(1)
+    assert out.contact(0).edge_index.size(1) > knn.contact(0).edge_index.size(1)  # same-component pairs too
+    with pytest.raises(ValueError, match="mode"):
+        ComponentRadiusGraph(mode="knn")
+    with pytest.raises(ValueError, match="fixed-size"):
+        ComponentRadiusGraph(mode="radius", static=True)
+
+
+def test_transform_initial_positions_give_the_same_edges_at_every_state():
+    h = _hierarchy()
+    h["l0"].pos0 = h["l0"].pos.clone()
+    static = ComponentRadiusGraph(r=0.9, k=2, positions="initial")
+    first = [static(h).contact(level).edge_index.clone() for level in range(h.num_levels)]
+    moved = h.clone()
+    noise = torch.randn(h["l0"].pos.shape, generator=torch.Generator().manual_seed(3))
+    moved["l0"].pos = h["l0"].pos + 0.5 * noise
+    current = ComponentRadiusGraph(r=0.9, k=2)
+    for level in range(h.num_levels):
+        assert torch.equal(static(moved).contact(level).edge_index, first[level])
+        assert torch.equal(current(h).contact(level).edge_index, first[level])
+    changed = [not torch.equal(current(moved).contact(k).edge_index, first[k]) for k in range(h.num_levels)]
+    assert any(changed)
+    with pytest.raises(ValueError, match="positions"):
+        ComponentRadiusGraph(positions="start")
+    with pytest.raises(ValueError, match="pos0"):
+        static(_hierarchy())
 
 
 def test_transform_needs_positions_and_components():

@@ -32,6 +32,7 @@ def toy3():
 
 def make(num_levels=3, d=16, **kwargs):
     torch.manual_seed(0)
+    kwargs.setdefault("noise_channels", 3)
     return AMPN(F0, hidden_channels=d, num_levels=num_levels, **kwargs)
 
 
@@ -61,8 +62,9 @@ def test_output_shape_and_defaults(toy):
     out = model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h))
     assert out.shape == (h["l0"].num_nodes, 3) and torch.isfinite(out).all()
     paper = AMPN(F0)
-    assert (paper.hidden_channels, paper.num_levels, paper.aggr) == (128, 4, "max")
-    assert paper.pre[0].hidden_channels == 128 and paper.num_layers == 15
+    assert (paper.hidden_channels, paper.mlp_channels, paper.num_levels, paper.aggr) == (128, 128, 4, "max")
+    assert paper.noise_channels == 0
+    assert paper.pre[0].mlp_channels == 128 and paper.num_layers == 15
     assert "num_levels=4" in str(paper)
 
 
@@ -133,7 +135,7 @@ def test_state_dict_round_trip_gives_identical_outputs(toy):
     torch.save(model.state_dict(), buf)
     buf.seek(0)
     torch.manual_seed(123)
-    other = AMPN(F0, hidden_channels=16, num_levels=4).eval()
+    other = AMPN(F0, hidden_channels=16, num_levels=4, noise_channels=3).eval()
     other.load_state_dict(torch.load(buf, weights_only=True))
     noise = noise_for(h)
     a = model(x_dict, h.edge_index_dict, e_dict, noise=noise)
@@ -141,15 +143,20 @@ def test_state_dict_round_trip_gives_identical_outputs(toy):
     assert torch.equal(a, b)
 
 
-def test_noise_input_is_drawn_when_not_given(toy):
+def test_no_noise_input_by_default_and_a_declared_one_must_be_given(toy):
     h, x_dict, e_dict = toy
+    torch.manual_seed(0)
+    plain = AMPN(F0, hidden_channels=16, num_levels=3).eval()
+    a = plain(x_dict, h.edge_index_dict, e_dict)
+    assert torch.isfinite(a).all() and torch.equal(a, plain(x_dict, h.edge_index_dict, e_dict))
+    assert plain.node_encoders["fine"].in_features == F0 + 8  # features + level encoding, no noise
     model = make()
-    a = model(x_dict, h.edge_index_dict, e_dict)
-    b = model(x_dict, h.edge_index_dict, e_dict)
-    assert torch.isfinite(a).all() and not torch.equal(a, b)
+    with pytest.raises(ValueError, match="noise input"):
+        model(x_dict, h.edge_index_dict, e_dict)
     noise = noise_for(h)
     c = model(x_dict, h.edge_index_dict, e_dict, noise=noise)
     assert torch.equal(c, model(x_dict, h.edge_index_dict, e_dict, noise=noise))
+    assert not torch.equal(c, model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h, 1)))
 
 
 def test_batch_of_two_hierarchies_equals_single_outputs():
@@ -178,7 +185,7 @@ def test_step_conditioning_is_required_when_configured(toy):
     h, x_dict, e_dict = toy
     model = make(num_step_frequencies=4)
     with pytest.raises(ValueError, match="step"):
-        model(x_dict, h.edge_index_dict, e_dict)
+        model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h))
     a = model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h), step=torch.tensor(0))
     b = model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h), step=torch.tensor(3))
     assert not torch.allclose(a, b)
@@ -223,3 +230,21 @@ def test_bf16_autocast_runs_and_is_close_to_fp32(toy):
     assert out.dtype == torch.bfloat16 and torch.isfinite(out).all()
     err = (out.float() - ref).norm() / ref.norm()
     assert err < 0.1
+
+
+def test_aggregation_object_is_copied_into_every_layer(toy):
+    from torch_geometric.nn.aggr import MaxAggregation, SoftmaxAggregation
+
+    h, x_dict, e_dict = toy
+    torch.manual_seed(0)
+    by_name = AMPN(F0, hidden_channels=8, num_levels=3)
+    torch.manual_seed(0)
+    by_object = AMPN(F0, hidden_channels=8, num_levels=3, aggr=MaxAggregation())
+    assert by_object.state_dict().keys() == by_name.state_dict().keys()
+    args = (x_dict, h.edge_index_dict, e_dict)
+    assert torch.equal(by_name(*args), by_object(*args))
+    learnable = AMPN(F0, hidden_channels=8, num_levels=3, aggr=SoftmaxAggregation(learn=True))
+    modules = [conv.aggr_module for stack in (learnable.pre, learnable.down, learnable.solve,
+                                                learnable.post, learnable.up) for conv in stack]  # fmt: skip
+    assert len({id(m) for m in modules}) == learnable.num_layers == 15
+    assert count_parameters(learnable) == count_parameters(by_name) + 15  # one temperature per layer

@@ -36,7 +36,7 @@ def toy():
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_intra_level_conv_has_no_graph_breaks(masked):
-    conv = IntraLevelConv(16, hidden_channels=32)
+    conv = IntraLevelConv(16, mlp_channels=32)
     args = intra_inputs()
     args = args if masked else args[:-1]
     explanation = torch._dynamo.explain(conv)(*args)
@@ -44,7 +44,7 @@ def test_intra_level_conv_has_no_graph_breaks(masked):
 
 
 def test_inter_level_conv_has_no_graph_breaks():
-    conv = InterLevelConv(16, hidden_channels=32)
+    conv = InterLevelConv(16, mlp_channels=32)
     g = torch.Generator().manual_seed(0)
     x = (torch.randn(20, 16, generator=g), torch.randn(6, 16, generator=g))
     edge_index, e = random_edge_index(20, 6, 30, g), torch.randn(30, 16, generator=g)
@@ -54,16 +54,18 @@ def test_inter_level_conv_has_no_graph_breaks():
 
 def test_ampn_has_no_graph_breaks(toy):
     h, x_dict, e_dict, masks = toy
-    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=3, num_step_frequencies=2)
+    fine_in = num_fine_node_features(3, 2)
+    model = AMPN(fine_in, hidden_channels=16, num_levels=3, num_step_frequencies=2, noise_channels=3)
+    noise = torch.randn(h["l0"].num_nodes, 3)
     explanation = torch._dynamo.explain(model)(
-        x_dict, h.edge_index_dict, e_dict, step=torch.tensor(1), contact_mask_dict=masks
-    )  # noise drawn inside the graph
+        x_dict, h.edge_index_dict, e_dict, noise=noise, step=torch.tensor(1), contact_mask_dict=masks
+    )
     assert explanation.graph_break_count == 0 and explanation.graph_count == 1
 
 
 def test_compiled_intra_level_conv_matches_eager():
     torch.manual_seed(0)
-    conv = IntraLevelConv(16, hidden_channels=32)
+    conv = IntraLevelConv(16, mlp_channels=32)
     args = intra_inputs()
     expected = conv(*args)
     compiled = torch.compile(conv)
@@ -75,7 +77,7 @@ def test_compiled_intra_level_conv_matches_eager():
 def test_compiled_ampn_matches_eager(toy):
     h, x_dict, e_dict, masks = toy
     torch.manual_seed(0)
-    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=3)
+    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=3, noise_channels=3)
     noise = torch.randn(h["l0"].num_nodes, 3)
     expected = model(x_dict, h.edge_index_dict, e_dict, noise=noise, contact_mask_dict=masks)
     out = torch.compile(model)(x_dict, h.edge_index_dict, e_dict, noise=noise, contact_mask_dict=masks)

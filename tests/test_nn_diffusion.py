@@ -36,6 +36,7 @@ def make(step_frequencies=0, max_step=20):
         num_levels=3,
         num_step_frequencies=step_frequencies,
         max_step=max_step,
+        noise_channels=3,
     )
 
 

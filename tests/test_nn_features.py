@@ -57,7 +57,7 @@ def test_fine_node_features_layout():
     component = torch.tensor([0, 1, 2, 3, 1])
     pos = torch.randn(n, 3)
     gp, gf = torch.randn(num_grippers, 3), torch.randn(num_grippers, 3)
-    x = fine_node_features(node_type, prev, bc, fiber, component, c, pos, gp, gf)
+    x = fine_node_features(node_type, prev, bc, fiber, component, c, gripper_features(pos, gp, gf))
     assert x.shape == (n, num_fine_node_features(c, num_grippers))
     t = NodeType.count()
     assert torch.equal(x[:, :t].argmax(1), node_type) and torch.all(x[:, :t].sum(1) == 1)

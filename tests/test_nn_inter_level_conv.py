@@ -50,8 +50,8 @@ def bipartite(n_src=15, n_dst=6, e=24, d=8, seed=0):
 
 
 def test_shapes_and_repr():
-    conv = InterLevelConv(8, hidden_channels=16)
-    assert str(conv) == "InterLevelConv(8, hidden_channels=16, aggr='max')"
+    conv = InterLevelConv(8, mlp_channels=16)
+    assert str(conv) == "InterLevelConv(8, mlp_channels=16, aggr='max')"
     xs, xd, ei, e = bipartite()
     out, e_new = conv((xs, xd), ei, e)
     assert out.shape == (6, 8) and e_new.shape == (24, 8)
@@ -60,7 +60,7 @@ def test_shapes_and_repr():
 @pytest.mark.parametrize("aggr", ["max", "sum", "mean"])
 def test_matches_float64_reference(aggr):
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16, aggr=aggr)
+    conv = InterLevelConv(8, mlp_channels=16, aggr=aggr)
     xs, xd, ei, e = bipartite(n_dst=10, e=12)  # some receivers get nothing
     assert len(set(ei[1].tolist())) < 10
     ref = inter_ref(conv, xs, xd, ei, e, aggr)
@@ -74,7 +74,7 @@ def test_matches_float64_reference(aggr):
 def test_down_and_up_directions():
     """Down: fine sources -> coarse targets; up: the reversed edges update the fine nodes."""
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16)
+    conv = InterLevelConv(8, mlp_channels=16)
     fine, coarse, down, e = bipartite(n_src=15, n_dst=6)
     x_coarse, _ = conv((fine, coarse), down, e)
     assert x_coarse.shape == coarse.shape
@@ -88,7 +88,7 @@ def test_down_and_up_directions():
 
 def test_permutation_equivariance_of_both_node_sets():
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16)
+    conv = InterLevelConv(8, mlp_channels=16)
     xs, xd, ei, e = bipartite()
     ps, pd = torch.randperm(15), torch.randperm(6)
     inv_s, inv_d = torch.argsort(ps), torch.argsort(pd)
@@ -100,7 +100,7 @@ def test_permutation_equivariance_of_both_node_sets():
 
 def test_edge_order_invariance_and_duplicates():
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16)
+    conv = InterLevelConv(8, mlp_channels=16)
     xs, xd, ei, e = bipartite()
     out, e_new = conv((xs, xd), ei, e)
     perm = torch.randperm(24)
@@ -114,7 +114,7 @@ def test_edge_order_invariance_and_duplicates():
 
 def test_receiver_depends_only_on_its_senders():
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16, aggr="sum")
+    conv = InterLevelConv(8, mlp_channels=16, aggr="sum")
     xs, xd, ei, e = bipartite(n_src=20, n_dst=8, e=16)
     out, _ = conv((xs, xd), ei, e)
     p = int(ei[0, 0])
@@ -128,7 +128,7 @@ def test_receiver_depends_only_on_its_senders():
 
 def test_batch_of_two_graphs_equals_single_outputs():
     torch.manual_seed(0)
-    conv = InterLevelConv(8, hidden_channels=16)
+    conv = InterLevelConv(8, mlp_channels=16)
     a, b = bipartite(seed=1), bipartite(n_src=11, n_dst=4, e=13, seed=2)
     oa, ob = conv((a[0], a[1]), a[2], a[3]), conv((b[0], b[1]), b[2], b[3])
     ei = torch.cat([a[2], b[2] + torch.tensor([[15], [6]])], 1)
@@ -139,7 +139,7 @@ def test_batch_of_two_graphs_equals_single_outputs():
 
 def test_bf16_autocast_runs_and_is_close_to_fp32():
     torch.manual_seed(0)
-    conv = InterLevelConv(16, hidden_channels=32)
+    conv = InterLevelConv(16, mlp_channels=32)
     xs, xd, ei, e = bipartite(n_src=40, n_dst=10, e=60, d=16)
     ref = conv((xs, xd), ei, e)
     with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -150,7 +150,7 @@ def test_bf16_autocast_runs_and_is_close_to_fp32():
 
 
 def test_reset_parameters_resets_every_submodule():
-    conv = InterLevelConv(8, hidden_channels=16)
+    conv = InterLevelConv(8, mlp_channels=16)
     with torch.no_grad():
         for p in conv.parameters():
             p.fill_(7.0)

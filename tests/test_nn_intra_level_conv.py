@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from torch_geometric.nn.aggr import MaxAggregation, MeanAggregation, SoftmaxAggregation, SumAggregation
 
 from torch_ampn.nn import IntraLevelConv
 from torch_ampn.testing import DEVICES, random_edge_index
@@ -63,9 +64,9 @@ def graph(n=12, e=30, m=14, d=8, seed=0):
 
 
 def test_shapes_and_repr():
-    conv = IntraLevelConv(8, hidden_channels=16)
-    assert str(conv) == "IntraLevelConv(8, hidden_channels=16, aggr='max')"
-    assert str(IntraLevelConv(8, aggr="mean")) == "IntraLevelConv(8, hidden_channels=128, aggr='mean')"
+    conv = IntraLevelConv(8, mlp_channels=16)
+    assert str(conv) == "IntraLevelConv(8, mlp_channels=16, aggr='max')"
+    assert str(IntraLevelConv(8, aggr="mean")) == "IntraLevelConv(8, mlp_channels=128, aggr='mean')"
     x, mi, em, ci, ec = graph()
     out = conv(x, mi, em, ci, ec)
     assert [tuple(o.shape) for o in out] == [(12, 8), (30, 8), (14, 8)]
@@ -76,7 +77,7 @@ def test_shapes_and_repr():
 @pytest.mark.parametrize("aggr", ["max", "sum", "mean"])
 def test_matches_float64_reference(aggr):
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16, aggr=aggr)
+    conv = IntraLevelConv(8, mlp_channels=16, aggr=aggr)
     x, mi, em, ci, ec = graph(n=10, e=24, m=9)  # some nodes have no incoming contact edge
     assert len(set(ci[1].tolist())) < 10
     ref = intra_ref(conv, x, mi, em, ci, ec, aggr)
@@ -90,7 +91,7 @@ def test_matches_float64_reference(aggr):
 
 def test_empty_contact_set_aggregates_to_zero():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16).double()
+    conv = IntraLevelConv(8, mlp_channels=16).double()
     x, mi, em, _, _ = graph()
     x, em = x.double(), em.double()
     ci, ec = torch.empty(2, 0, dtype=torch.long), torch.empty(0, 8, dtype=torch.float64)
@@ -101,7 +102,7 @@ def test_empty_contact_set_aggregates_to_zero():
 
 def test_node_permutation_equivariance():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16)
+    conv = IntraLevelConv(8, mlp_channels=16)
     x, mi, em, ci, ec = graph()
     perm = torch.randperm(12)
     inv = torch.empty_like(perm)
@@ -115,7 +116,7 @@ def test_node_permutation_equivariance():
 
 def test_edge_order_invariance():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16)
+    conv = IntraLevelConv(8, mlp_channels=16)
     x, mi, em, ci, ec = graph()
     pm, pc = torch.randperm(mi.size(1)), torch.randperm(ci.size(1))
     out = conv(x, mi, em, ci, ec)
@@ -127,7 +128,7 @@ def test_edge_order_invariance():
 
 def test_duplicate_edges_change_nothing_under_max():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16)
+    conv = IntraLevelConv(8, mlp_channels=16)
     x, mi, em, ci, ec = graph()
     dup_m, dup_c = torch.tensor([0, 3, 3]), torch.tensor([1, 5])
     out = conv(x, mi, em, ci, ec)
@@ -141,7 +142,7 @@ def test_duplicate_edges_change_nothing_under_max():
     torch.testing.assert_close(out_d[0], out[0])
     torch.testing.assert_close(out_d[1][30:], out[1][dup_m])
     # ... whereas a sum aggregation counts the copy twice:
-    conv_sum = IntraLevelConv(8, hidden_channels=16, aggr="sum")
+    conv_sum = IntraLevelConv(8, mlp_channels=16, aggr="sum")
     a = conv_sum(x, mi, em, ci, ec)[0]
     b = conv_sum(x, torch.cat([mi, mi[:, dup_m]], 1), torch.cat([em, em[dup_m]]), ci, ec)[0]
     assert not torch.allclose(a, b)
@@ -150,7 +151,7 @@ def test_duplicate_edges_change_nothing_under_max():
 @pytest.mark.parametrize("aggr", ["max", "sum"])
 def test_output_depends_only_on_in_neighbourhood(aggr):
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16, aggr=aggr)
+    conv = IntraLevelConv(8, mlp_channels=16, aggr=aggr)
     x, mi, em, ci, ec = graph(n=20, e=25, m=10)
     out = conv(x, mi, em, ci, ec)[0]
     p = 7
@@ -168,7 +169,7 @@ def test_output_depends_only_on_in_neighbourhood(aggr):
 
 def test_batch_of_two_graphs_equals_single_outputs():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16)
+    conv = IntraLevelConv(8, mlp_channels=16)
     g1, g2 = graph(n=12, seed=1), graph(n=9, e=20, m=7, seed=2)
     o1, o2 = conv(*g1), conv(*g2)
     x = torch.cat([g1[0], g2[0]])
@@ -180,11 +181,13 @@ def test_batch_of_two_graphs_equals_single_outputs():
     torch.testing.assert_close(ob[2], torch.cat([o1[2], o2[2]]))
 
 
-@pytest.mark.parametrize("aggr", ["max", "sum", "mean"])
+@pytest.mark.parametrize("aggr", ["max", "sum", "mean", "softmax"])
 @pytest.mark.parametrize("device", DEVICES)
 def test_contact_mask_equals_dropping_edges(aggr, device):
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16, aggr=aggr).to(device)
+    if aggr == "softmax":  # a PyG Aggregation object with a learnable parameter
+        aggr = SoftmaxAggregation(t=0.5, learn=True)
+    conv = IntraLevelConv(8, mlp_channels=16, aggr=aggr).to(device)
     x, mi, em, ci, ec = (t.to(device) for t in graph(m=40))
     mask = torch.rand(40, device=device) > 0.5
     mask[ci[1] == ci[1, 0]] = False  # one node loses all its contact edges
@@ -203,7 +206,7 @@ def test_contact_mask_equals_dropping_edges(aggr, device):
 
 def test_bf16_autocast_runs_and_is_close_to_fp32():
     torch.manual_seed(0)
-    conv = IntraLevelConv(16, hidden_channels=32)
+    conv = IntraLevelConv(16, mlp_channels=32)
     x, mi, em, ci, ec = graph(n=30, e=90, m=40, d=16)
     mask = torch.rand(40) > 0.3
     ref = conv(x, mi, em, ci, ec, mask)
@@ -217,7 +220,7 @@ def test_bf16_autocast_runs_and_is_close_to_fp32():
 
 def test_gradients_and_reset_parameters():
     torch.manual_seed(0)
-    conv = IntraLevelConv(8, hidden_channels=16)
+    conv = IntraLevelConv(8, mlp_channels=16)
     x, mi, em, ci, ec = graph()
     x.requires_grad_()
     out = conv(x, mi, em, ci, ec)
@@ -229,3 +232,37 @@ def test_gradients_and_reset_parameters():
             p.fill_(7.0)
     conv.reset_parameters()
     assert all(not torch.all(p == 7.0) for p in conv.parameters())
+
+
+@pytest.mark.parametrize(
+    "name, aggregation", [("max", MaxAggregation()), ("sum", SumAggregation()), ("mean", MeanAggregation())]
+)
+def test_aggregation_objects_equal_their_names(name, aggregation):
+    args = graph(m=30)
+    torch.manual_seed(0)
+    by_name = IntraLevelConv(8, mlp_channels=16, aggr=name)
+    torch.manual_seed(0)
+    by_object = IntraLevelConv(8, mlp_channels=16, aggr=aggregation)
+    for a, b in zip(by_name(*args), by_object(*args), strict=True):
+        assert torch.equal(a, b)
+    assert str(by_object) == "IntraLevelConv(8, mlp_channels=16, aggr='" + type(aggregation).__name__ + "()')"
+    with pytest.raises(ValueError, match="aggr must be one of"):
+        IntraLevelConv(8, aggr="median")
+
+
+def test_learnable_aggregation_gets_a_gradient_against_a_float64_reference():
+    """SoftmaxAggregation: sum_j softmax_j(t e_j) e_j per channel, by hand in float64."""
+    torch.manual_seed(0)
+    conv = IntraLevelConv(4, mlp_channels=8, aggr=SoftmaxAggregation(t=2.0, learn=True)).double()
+    x, mi, em, ci, ec = (t.double() if t.is_floating_point() else t for t in graph(n=6, d=4, e=9, m=5))
+    _, e_mesh, _ = conv(x, mi, em, ci, ec)
+    agg = conv.propagate(mi, edge_attr=e_mesh, size=(6, 6))
+    for i in range(6):
+        incoming = e_mesh[mi[1] == i]
+        expected = torch.zeros(4, dtype=torch.float64)
+        if len(incoming):
+            w = torch.softmax(2.0 * incoming, dim=0)
+            expected = (w * incoming).sum(0)
+        torch.testing.assert_close(agg[i], expected)
+    conv(x, mi, em, ci, ec)[0].sum().backward()
+    assert conv.aggr_module.t.grad is not None and conv.aggr_module.t.grad != 0

@@ -1,18 +1,18 @@
-"""MLP.forward_edges against the plain MLP applied to the gathered, concatenated input."""
+"""LayerNormMLP.forward_edges against the plain LayerNormMLP applied to the gathered, concatenated input."""
 
 import pytest
 import torch
 
-from torch_ampn.nn import MLP
+from torch_ampn.nn import LayerNormMLP
 
 
-def _reference(mlp: MLP, x_dst, x_src, edge_attr, edge_index):
+def _reference(mlp: LayerNormMLP, x_dst, x_src, edge_attr, edge_index):
     src, dst = edge_index
     return mlp(torch.cat([x_dst[dst], x_src[src], edge_attr], dim=-1))
 
 
-def _randomised_mlp(in_channels: int, out_channels: int, hidden: int) -> MLP:
-    mlp = MLP(in_channels, out_channels, hidden_channels=hidden).double()
+def _randomised_mlp(in_channels: int, out_channels: int, hidden: int) -> LayerNormMLP:
+    mlp = LayerNormMLP(in_channels, out_channels, hidden_channels=hidden).double()
     with torch.no_grad():  # non-trivial affine layer norm, so gamma and beta are exercised
         mlp.norm.weight.uniform_(0.5, 1.5)
         mlp.norm.bias.normal_()
@@ -61,7 +61,7 @@ def test_forward_edges_float32_stable_for_large_mean_features():
 
 
 def test_forward_edges_rejects_sizes_that_do_not_add_up():
-    mlp = MLP(9, 2, hidden_channels=4)
+    mlp = LayerNormMLP(9, 2, hidden_channels=4)
     x = torch.randn(5, 3)
     with pytest.raises(ValueError, match=r"3 \+ 3 \+ 2 do not add up to in_channels=9"):
         mlp.forward_edges(x, x, torch.randn(6, 2), torch.zeros(2, 6, dtype=torch.long))

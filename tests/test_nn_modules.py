@@ -1,17 +1,17 @@
-"""MLP, FourierLevelEncoding and Normalizer."""
+"""LayerNormMLP, FourierLevelEncoding and Normalizer."""
 
 import math
 
 import pytest
 import torch
 
-from torch_ampn.nn import MLP, FourierLevelEncoding, Normalizer
+from torch_ampn.nn import FourierLevelEncoding, LayerNormMLP, Normalizer
 
 
 def test_mlp_is_layernorm_linear_silu_linear():
     torch.manual_seed(0)
-    mlp = MLP(6, 4, hidden_channels=16)
-    assert str(mlp) == "MLP(6, 4, hidden_channels=16)"
+    mlp = LayerNormMLP(6, 4, hidden_channels=16)
+    assert str(mlp) == "LayerNormMLP(6, 4, hidden_channels=16)"
     x = torch.randn(10, 6)
     z = torch.nn.functional.layer_norm(x, (6,), mlp.norm.weight, mlp.norm.bias, mlp.norm.eps)
     h = z @ mlp.lin1.weight.t() + mlp.lin1.bias

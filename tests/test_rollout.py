@@ -147,3 +147,26 @@ def test_process_trajectory_matches_the_simulated_setting(runs):
 def test_process_trajectory_refuses_bad_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):
         process_trajectory(SMALL, **kwargs)
+
+
+def test_contact_edges_from_the_initial_state_serve_every_step(runs, hierarchy):
+    from torch_ampn.transforms import ComponentRadiusGraph
+
+    traj = runs[0]
+    initial = ComponentRadiusGraph(12.0, 1, positions="initial")
+    expected = ComponentRadiusGraph(12.0, 1)(step_sample(traj, 1, hierarchy))  # built from x^0
+    seen = []
+
+    def moving(data):  # a predictor that moves the plies, so that current-position edges would change
+        seen.append([data.contact(k).edge_index.clone() for k in range(data.num_levels)])
+        return torch.full_like(data["l0"].pos, 0.7)
+
+    rollout(moving, traj, hierarchy, initial)
+    assert len(seen) == traj.num_steps
+    for edges in seen:
+        for k, edge_index in enumerate(edges):
+            assert torch.equal(edge_index, expected.contact(k).edge_index)
+    current = []
+    rollout(lambda d: current.append(d.contact(0).edge_index.clone()) or torch.full_like(d["l0"].pos, 0.7),
+            traj, hierarchy, ComponentRadiusGraph(12.0, 1))  # fmt: skip
+    assert not all(torch.equal(e, current[0]) for e in current)

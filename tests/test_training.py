@@ -14,8 +14,7 @@ import lightning as L  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, step_sample  # noqa: E402
-from torch_ampn.data_cli import generate  # noqa: E402
-from torch_ampn.sim import StampFormingConfig  # noqa: E402
+from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
     AMPNLightningModule,
@@ -26,15 +25,16 @@ from torch_ampn.training.cli import main  # noqa: E402
 
 TINY_SIM = dict(ply_cells=5, punch_cells=[4, 4], die_cells=[4, 4], num_steps=6)
 SMALL_MODEL = dict(
-    hidden_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1, post_layers=1, up_layers=1
+    hidden_channels=16, mlp_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
+    post_layers=1, up_layers=1,
 )
 
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("dataset")
-    cfg = StampFormingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in TINY_SIM.items()})
-    generate(root, 2, 1, 1, config=cfg, workers=1, compile=False, progress=False)
+    cfg = StampFormingConfig.from_dict(TINY_SIM)
+    generate_dataset(root, 2, 1, 1, config=cfg, workers=1, compile=False, progress=False)
     return root
 
 
@@ -439,7 +439,21 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
     assert [r["trajectory"] for r in rows] == ["traj_200000"]
     assert {"model", "static", "rigid_r3", "rollout_seconds"} <= set(rows[0])
     summary = json.loads((reports / "test_summary.json").read_text())
-    assert summary["baseline_rmse"] <= summary["static_rmse"]
+    # the summary is the mean of the CSV rows, the baseline the best of the baseline columns
+    baselines = {k: [float(r[k]) for r in rows] for k in rows[0] if k == "static" or k.startswith("rigid_r")}
+    means = {k: sum(v) / len(v) for k, v in baselines.items()}
+    assert len(means) == 5  # static and the four touch radii of the default module
+    assert summary["baseline_rmse"] == pytest.approx(min(means.values()), rel=1e-5)
+    assert summary["static_rmse"] == pytest.approx(means["static"], rel=1e-5)
+    model = sum(float(r["model"]) for r in rows) / len(rows)
+    assert summary["rollout_rmse"] == pytest.approx(model, rel=1e-5)
+    assert summary["improvement_over_baseline"] == pytest.approx(min(means.values()) / model, rel=1e-5)
+    with open(reports / "rmse_over_time.csv") as f:
+        over_time = list(csv.DictReader(f))
+    assert [int(r["step"]) for r in over_time] == list(range(7)) and float(over_time[0]["model"]) == 0
+    assert set(over_time[0]) == {"step", "model", *baselines}
+    # averaging over steps then trajectories (the summary) = over trajectories then steps (the CSV)
+    assert sum(float(r["model"]) for r in over_time[1:]) / 6 == pytest.approx(model, rel=1e-5)
     for name in ("rmse_over_time.png", "final_shape_traj_200000.png", "xdmf/traj_200000.xdmf"):
         assert (reports / name).is_file(), name
 
@@ -625,3 +639,53 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(data_dir, monkeypatc
     assert fallback._compiled_network is False
     for (name, p_eager), (_, p_fb) in zip(eager.named_parameters(), fallback.named_parameters(), strict=True):
         torch.testing.assert_close(p_fb, p_eager, rtol=0, atol=0, msg=name)
+
+
+# ---- module arguments and old checkpoints ------------------------------------------------------
+def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network():
+    import inspect
+
+    from torch_ampn.nn import AMPN, AMPNSurrogate
+    from torch_ampn.training.module import SURROGATE_ARGUMENTS
+
+    module = inspect.signature(AMPNLightningModule).parameters
+    owners = {**inspect.signature(AMPN).parameters, **inspect.signature(AMPNSurrogate).parameters}
+    for name in SURROGATE_ARGUMENTS:
+        assert name in module and name in owners, name
+        assert module[name].default == owners[name].default, name
+    # every surrogate argument of the module reaches the network
+    model = AMPNLightningModule(**{**SMALL_MODEL, "mlp_channels": 24, "aggr": "mean"}).surrogate.model
+    assert (model.hidden_channels, model.mlp_channels, model.aggr, model.num_levels) == (16, 24, "mean", 2)
+    assert [len(s) for s in (model.pre, model.down, model.solve, model.post, model.up)] == [1] * 5
+
+
+def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path):
+    """A checkpoint written before ``mlp_channels`` existed (MLPs as wide as d = 8), with the
+    residual that version predicted for a fixed window (made by ``tests/data`` 's writer)."""
+    from pathlib import Path
+
+    from torch_ampn.data import HierarchyCache
+    from torch_ampn.sim import simulate_batch
+
+    data = Path(__file__).parent / "data"
+    ref = torch.load(data / "legacy_0.1.0.dev0_reference.pt", weights_only=True)
+    legacy = data / "legacy_0.1.0.dev0.ckpt"
+    assert "mlp_channels" not in torch.load(legacy, weights_only=True)["hyper_parameters"]
+    module = AMPNLightningModule.load_from_checkpoint(legacy, weights_only=True)
+    assert module.hparams.mlp_channels == module.hparams.hidden_channels == 8
+    assert module.surrogate.model.pre[0].mlp_contact.hidden_channels == 8
+    traj = simulate_batch(StampFormingConfig(**ref["config"]), seeds=[ref["seed"]])[0]
+    cache = HierarchyCache(None, max_levels=ref["max_levels"], min_coarse_nodes=ref["min_coarse_nodes"])
+    window = module.surrogate.contact(step_sample(traj, ref["t"], cache(traj)))
+    generator = torch.Generator().manual_seed(ref["generator_seed"])
+    with torch.no_grad():
+        residual = module.surrogate.predict_residual(window, generator)
+    torch.testing.assert_close(residual, ref["residual"], rtol=1e-5, atol=1e-6)
+    # saved again, the checkpoint records the width and loads without the legacy path
+    path = tmp_path / "again.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": L.__version__}, path)  # fmt: skip
+    again = AMPNLightningModule.load_from_checkpoint(path, weights_only=True)
+    assert again.hparams.mlp_channels == 8
+    for name, value in module.state_dict().items():
+        assert torch.equal(value, again.state_dict()[name]), name

@@ -46,7 +46,8 @@ def rollout(
         hierarchy: The hierarchy of ``traj``'s mesh (e.g. from
             :class:`~torch_ampn.data.HierarchyCache`); not modified.
         contact: Transform that fills the contact edges from current positions (e.g.
-            ``surrogate.contact``); ``None`` for no contact edges.
+            ``surrogate.contact``); ``None`` for no contact edges. A transform whose
+            ``positions`` is ``"initial"`` runs once, its edges serve every step.
         num_steps: Steps to roll out (default: all ``T``).
         device: Where to run (default: the hierarchy's device).
         progress: Show a progress bar.
@@ -58,10 +59,10 @@ def rollout(
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if device is None:
-        device = hierarchy["l0", "mesh", "l0"].edge_index.device
+        device = hierarchy.mesh(0).edge_index.device
     device = torch.device(device)
     traj = traj.to(device)
-    if hierarchy["l0", "mesh", "l0"].edge_index.device != device:
+    if hierarchy.mesh(0).edge_index.device != device:
         hierarchy = hierarchy.clone().to(device)  # .to() works in place: keep the caller's copy
     ply = traj.ply_mask  # [N]
     # Prediction buffer: tools on their prescribed path, plies at rest until predicted.
@@ -73,10 +74,18 @@ def rollout(
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
+    # edges from the initial state (ComponentRadiusGraph(positions="initial")) are built once
+    static_contact = getattr(contact, "positions", "current") == "initial"
+    edges: list[Tensor] | None = None
     for t in iterator:
         data = step_sample(state, t, hierarchy)
-        if contact is not None:
+        if edges is not None:
+            for level, edge_index in enumerate(edges):
+                data.contact(level).edge_index = edge_index
+        elif contact is not None:
             data = contact(data)
+            if static_contact:
+                edges = [data.contact(level).edge_index for level in range(data.num_levels)]
         du = predictor(data).float()  # [N, 3]
         pred[t] = torch.where(ply[:, None], pred[t - 1] + du, pred[t])
     return pred[: steps + 1].cpu()

@@ -1,6 +1,6 @@
 """Graph data: the AMG hierarchy, ``HierarchicalData`` and mesh builders."""
 
-from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, step_sample
+from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, set_window, step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
 from torch_ampn.data.hierarchy import build_hierarchy, mesh_operator
 from torch_ampn.data.mesh import (
@@ -33,5 +33,6 @@ __all__ = [
     "read_time_series",
     "rectangle_mesh",
     "stacked_plates",
+    "set_window",
     "step_sample",
 ]

@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
 from torch_ampn.data.hierarchy import build_hierarchy
@@ -87,6 +88,40 @@ class HierarchyCache:
         return self._memory[key]
 
 
+def set_window(
+    data: HierarchicalData,
+    pos: Tensor,
+    prev_disp: Tensor,
+    next_disp: Tensor,
+    ply_mask: Tensor,
+    gripper_pos: Tensor,
+    gripper_force: Tensor,
+) -> HierarchicalData:
+    r"""Write the state fields of a window :math:`(t-1, t)` into ``data`` (in place) and return it.
+
+    Used by :func:`step_sample` and by the pushforward of
+    :class:`~torch_ampn.training.AMPNLightningModule`, which builds the window before.
+
+    Args:
+        data: The window's hierarchy (a shallow copy, or a batch).
+        pos: :math:`x^{t-1}` ``[N, 3]``.
+        prev_disp: :math:`x^{t-1} - x^{t-2}` ``[N, 3]``.
+        next_disp: :math:`x^t - x^{t-1}` ``[N, 3]``: the target, and on tool nodes the prescribed motion.
+        ply_mask: ``BoolTensor[N]``: ply nodes (predicted); the others are tools.
+        gripper_pos: Gripper positions at :math:`t-1` ``[B, G, 3]``.
+        gripper_force: Gripper force vectors at :math:`t-1` ``[B, G, 3]``.
+    """
+    l0 = data["l0"]
+    l0.pos = pos
+    l0.prev_disp = prev_disp
+    l0.bc_disp = torch.where(ply_mask[:, None], torch.zeros_like(next_disp), next_disp)
+    l0.target = next_disp
+    l0.ply_mask = ply_mask
+    data.gripper_pos = gripper_pos
+    data.gripper_force = gripper_force
+    return data
+
+
 def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> HierarchicalData:
     r"""The training window ``(t-1, t)`` of ``traj`` on ``hierarchy`` (which is not modified).
 
@@ -108,21 +143,21 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
     """
     if not 1 <= t <= traj.num_steps:
         raise IndexError(f"step {t} out of range 1..{traj.num_steps}")
-    data = copy.copy(hierarchy)
     x_prev, x_next = traj.pos[t - 1], traj.pos[t]
-    ply = traj.node_type == NodeType.PLY
+    gripper_pos, gripper_force = traj.gripper_positions(), traj.gripper_force_vectors()  # [T+1, G, 3]
+    data = set_window(
+        copy.copy(hierarchy),
+        pos=x_prev,
+        prev_disp=x_prev - traj.pos[t - 2] if t >= 2 else torch.zeros_like(x_prev),
+        next_disp=x_next - x_prev,
+        ply_mask=traj.node_type == NodeType.PLY,
+        gripper_pos=gripper_pos[t - 1][None],
+        gripper_force=gripper_force[t - 1][None],
+    )
     l0 = data["l0"]
     l0.pos0 = traj.pos[0]
-    l0.pos = x_prev
-    l0.prev_disp = x_prev - traj.pos[t - 2] if t >= 2 else torch.zeros_like(x_prev)
     l0.prev_prev_disp = traj.pos[t - 2] - traj.pos[t - 3] if t >= 3 else torch.zeros_like(x_prev)
-    l0.bc_disp = torch.where(ply[:, None], torch.zeros_like(x_prev), x_next - x_prev)
-    l0.target = x_next - x_prev
     l0.fiber = traj.fiber
-    l0.ply_mask = ply
-    gripper_pos, gripper_force = traj.gripper_positions(), traj.gripper_force_vectors()  # [T+1, G, 3]
-    data.gripper_pos = gripper_pos[t - 1][None]
-    data.gripper_force = gripper_force[t - 1][None]
     data.prev_gripper_pos = gripper_pos[max(t - 2, 0)][None]
     data.prev_gripper_force = gripper_force[max(t - 2, 0)][None]
     data.step = torch.tensor([t])

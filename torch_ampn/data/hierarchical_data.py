@@ -16,9 +16,32 @@ from torch_ampn.data.io import atomic_torch_save
 _LEVEL_RE = re.compile(r"^l(\d+)$")
 
 
+EdgeType = tuple[str, str, str]
+
+# The four edge relations of a hierarchy, the names used in edge types and in per-relation modules.
+MESH, CONTACT, DOWN, UP = "mesh", "contact", "down", "up"
+RELATIONS = (MESH, CONTACT, DOWN, UP)
+
+
 def level_name(level: int) -> str:
     """Node type name of hierarchy level ``level`` (``0`` is the finest): ``"l{level}"``."""
     return f"l{level}"
+
+
+def edge_type(relation: str, level: int) -> EdgeType:
+    """The edge type of ``relation`` at ``level``.
+
+    ``("lk", "mesh", "lk")``, ``("lk", "contact", "lk")``, ``("lk", "down", "lk+1")`` (from level
+    ``k`` to ``k + 1``) or ``("lk+1", "up", "lk")`` (from level ``k + 1`` to ``k``).
+    """
+    lk = level_name(level)
+    if relation in (MESH, CONTACT):
+        return (lk, relation, lk)
+    if relation == DOWN:
+        return (lk, DOWN, level_name(level + 1))
+    if relation == UP:
+        return (level_name(level + 1), UP, lk)
+    raise ValueError(f"relation must be one of {RELATIONS}, got {relation!r}")
 
 
 class HierarchicalData(HeteroData):
@@ -65,23 +88,19 @@ class HierarchicalData(HeteroData):
 
     def mesh(self, level: int) -> EdgeStorage:
         """Edge store of the mesh edges of level ``level``."""
-        k = level_name(self._check_level(level))
-        return self[k, "mesh", k]
+        return self[edge_type(MESH, self._check_level(level))]
 
     def contact(self, level: int) -> EdgeStorage:
         """Edge store of the contact edges of level ``level``."""
-        k = level_name(self._check_level(level))
-        return self[k, "contact", k]
+        return self[edge_type(CONTACT, self._check_level(level))]
 
     def down(self, level: int) -> EdgeStorage:
         """Edge store of the down edges from level ``level`` to ``level + 1``."""
-        k = self._check_level(level, coarsest_ok=False)
-        return self[level_name(k), "down", level_name(k + 1)]
+        return self[edge_type(DOWN, self._check_level(level, coarsest_ok=False))]
 
     def up(self, level: int) -> EdgeStorage:
         """Edge store of the up edges from level ``level + 1`` to ``level``."""
-        k = self._check_level(level, coarsest_ok=False)
-        return self[level_name(k + 1), "up", level_name(k)]
+        return self[edge_type(UP, self._check_level(level, coarsest_ok=False))]
 
     def num_nodes_per_level(self) -> list[int]:
         """Node count of every level, finest first."""
@@ -142,7 +161,7 @@ class HierarchicalData(HeteroData):
     # ---- display ---------------------------------------------------------------------
     def summary(self) -> str:
         """A table of nodes and edges per level."""
-        rows = [("level", "nodes", "mesh", "contact", "down", "up")]
+        rows = [("level", "nodes", *RELATIONS)]
         for k in range(self.num_levels):
             last = k == self.num_levels - 1
             rows.append(

@@ -15,7 +15,7 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
 from torch_ampn.data.io import atomic_torch_save
 
 #: Bump when the construction changes, so that cached hierarchies are rebuilt.
@@ -259,16 +259,15 @@ def _from_dict(d: dict[str, Tensor]) -> HierarchicalData:
     for k in range(num_levels):
         lk = level_name(k)
         h[lk].num_nodes = int(d[f"{k}/num_nodes"])
-        h[lk, "mesh", lk].edge_index = d[f"{k}/mesh"]
-        h[lk, "contact", lk].edge_index = torch.empty(2, 0, dtype=torch.long)
+        h[edge_type(MESH, k)].edge_index = d[f"{k}/mesh"]
+        h[edge_type(CONTACT, k)].edge_index = torch.empty(2, 0, dtype=torch.long)
         if k > 0:
-            prev = level_name(k - 1)
             h[lk].root = d[f"{k}/root"]
             down = d[f"{k}/down"]
-            h[prev, "down", lk].edge_index = down
-            h[prev, "down", lk].edge_weight = d[f"{k}/down_weight"]
-            h[lk, "up", prev].edge_index = down.flip(0)
-            h[lk, "up", prev].edge_weight = d[f"{k}/down_weight"]
+            h[edge_type(DOWN, k - 1)].edge_index = down
+            h[edge_type(DOWN, k - 1)].edge_weight = d[f"{k}/down_weight"]
+            h[edge_type(UP, k - 1)].edge_index = down.flip(0)
+            h[edge_type(UP, k - 1)].edge_weight = d[f"{k}/down_weight"]
     return h
 
 

@@ -16,7 +16,7 @@ from torch_ampn.nn.features import (
 )
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
-from torch_ampn.nn.mlp import MLP
+from torch_ampn.nn.mlp import LayerNormMLP
 from torch_ampn.nn.multilevel_loss import multilevel_mse, restrict_mean
 from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.nn.surrogate import AMPNSurrogate
@@ -28,7 +28,7 @@ __all__ = [
     "FourierLevelEncoding",
     "InterLevelConv",
     "IntraLevelConv",
-    "MLP",
+    "LayerNormMLP",
     "Normalizer",
     "coarse_node_features",
     "edge_features",

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor, nn
+from torch_geometric.nn.aggr import Aggregation
 
-from torch_ampn.data.hierarchical_data import level_name
+from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
 from torch_ampn.data.node_type import NodeType
+from torch_ampn.nn._conv import check_aggr
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.features import EDGE_FEATURES_CURRENT, EDGE_FEATURES_WITH_INITIAL
 from torch_ampn.nn.inter_level_conv import InterLevelConv
-from torch_ampn.nn.intra_level_conv import IntraLevelConv, check_aggr
-
-EdgeType = tuple[str, str, str]
+from torch_ampn.nn.intra_level_conv import IntraLevelConv
 
 
 class AMPN(nn.Module):
@@ -61,11 +63,14 @@ class AMPN(nn.Module):
         solve_layers: Layers of the Solve stack.
         post_layers: Layers of the Post stack.
         up_layers: Layers of the Up stack.
-        aggr: Aggregation of all layers (``"max"``, ``"sum"``, ``"mean"``).
-        mlp_channels: Hidden width of the layer MLPs (default: ``hidden_channels``;
-            the paper uses 128 for both).
-        noise_channels: Columns of the noise input appended to the ``l0`` features
-            (default: ``out_channels``; the noisy target in ROBIN mode). ``0``: none.
+        aggr: Aggregation of all layers: ``"max"``, ``"sum"``, ``"mean"`` or a
+            ``torch_geometric.nn.aggr.Aggregation`` (each layer gets its own copy, so a
+            learnable aggregation is learnt per layer).
+        mlp_channels: Hidden width of the layer MLPs (paper: 128, whatever :math:`d` is).
+        noise_channels: Columns of a noise input appended to the ``l0`` features; the caller
+            passes it to :meth:`forward` (ROBIN mode: the noisy target, see
+            :class:`~torch_ampn.nn.DiffusionAMPN`). ``0`` (default): no noise input, and the
+            output is a deterministic function of the input.
         num_level_frequencies: Frequencies of the level encoding (``2 F`` inputs).
         num_step_frequencies: Frequencies of the diffusion-step encoding; ``0`` (default)
             for a model without step conditioning (AMPN, ``K = 1``).
@@ -88,9 +93,9 @@ class AMPN(nn.Module):
         solve_layers: int = 5,
         post_layers: int = 3,
         up_layers: int = 2,
-        aggr: str = "max",
-        mlp_channels: int | None = None,
-        noise_channels: int | None = None,
+        aggr: str | Aggregation = "max",
+        mlp_channels: int = 128,
+        noise_channels: int = 0,
         num_level_frequencies: int = 4,
         num_step_frequencies: int = 0,
         max_step: int = 20,
@@ -109,9 +114,10 @@ class AMPN(nn.Module):
         self.out_channels = out_channels
         self.hidden_channels = hidden_channels
         self.num_levels = num_levels
-        self.aggr = check_aggr(aggr)
-        self.mlp_channels = hidden_channels if mlp_channels is None else mlp_channels
-        self.noise_channels = out_channels if noise_channels is None else noise_channels
+        aggr = check_aggr(aggr)
+        self.aggr = aggr if isinstance(aggr, str) else repr(aggr)  # a template module is not registered
+        self.mlp_channels = mlp_channels
+        self.noise_channels = noise_channels
 
         self.level_encoding = FourierLevelEncoding(num_level_frequencies, max_index=8.0)
         self.step_encoding = (
@@ -128,24 +134,21 @@ class AMPN(nn.Module):
         fine_in = fine_in_channels + self.noise_channels + cond
         self.node_encoders = nn.ModuleDict({"fine": nn.Linear(fine_in, d)})
         self.edge_encoders = nn.ModuleDict(
-            {"mesh": nn.Linear(mesh_edge_channels, d), "contact": nn.Linear(contact_edge_channels, d)}
+            {MESH: nn.Linear(mesh_edge_channels, d), CONTACT: nn.Linear(contact_edge_channels, d)}
         )
         if hierarchical:
             self.node_encoders["coarse"] = nn.Linear(coarse_in_channels + cond, d)
-            self.edge_encoders["down"] = nn.Linear(down_edge_channels, d)
-            self.edge_encoders["up"] = nn.Linear(up_edge_channels, d)
+            self.edge_encoders[DOWN] = nn.Linear(down_edge_channels, d)
+            self.edge_encoders[UP] = nn.Linear(up_edge_channels, d)
 
-        def intra(n: int) -> nn.ModuleList:
-            return nn.ModuleList(IntraLevelConv(d, h, aggr) for _ in range(n))
+        def stack(conv: type[IntraLevelConv | InterLevelConv], n: int) -> nn.ModuleList:
+            return nn.ModuleList(conv(d, h, copy.deepcopy(aggr)) for _ in range(n))
 
-        def inter(n: int) -> nn.ModuleList:
-            return nn.ModuleList(InterLevelConv(d, h, aggr) for _ in range(n))
-
-        self.pre = intra(pre_layers)
-        self.solve = intra(solve_layers)
-        self.post = intra(post_layers)
-        self.down = inter(down_layers) if hierarchical else nn.ModuleList()
-        self.up = inter(up_layers) if hierarchical else nn.ModuleList()
+        self.pre = stack(IntraLevelConv, pre_layers)
+        self.solve = stack(IntraLevelConv, solve_layers)
+        self.post = stack(IntraLevelConv, post_layers)
+        self.down = stack(InterLevelConv, down_layers) if hierarchical else nn.ModuleList()
+        self.up = stack(InterLevelConv, up_layers) if hierarchical else nn.ModuleList()
         self.decoder = nn.Linear(d, out_channels)
         self.reset_parameters()
 
@@ -200,8 +203,9 @@ class AMPN(nn.Module):
                 (a missing contact set counts as empty), ``("lk", "down", "lk+1")`` and
                 ``("lk+1", "up", "lk")`` between used levels. Other keys are ignored.
             edge_attr_dict: Edge features with the same keys.
-            noise: Noise input of ``l0`` ``[N_0, noise_channels]``: N(0, 1) samples in AMPN
-                mode, the noisy target in ROBIN mode. ``None``: drawn here with ``torch.randn``.
+            noise: Noise input of ``l0`` ``[N_0, noise_channels]`` (models with
+                ``noise_channels > 0`` only): the noisy target in ROBIN mode, N(0, 1) samples
+                in the paper's AMPN mode.
             step: Diffusion-step index (models with step conditioning only): a number or
                 scalar tensor (every graph) or ``LongTensor[B]`` (one per graph, with ``batch_dict``).
             batch_dict: ``{"lk": LongTensor[N_k]}`` graph of every node; needed only for a
@@ -217,9 +221,11 @@ class AMPN(nn.Module):
         for lk in names:
             if lk not in x_dict:
                 raise KeyError(f"AMPN with num_levels={num_levels} needs node features for {lk!r}")
-        x0 = x_dict["l0"]
         if self.noise_channels > 0 and noise is None:
-            noise = torch.randn(x0.size(0), self.noise_channels, dtype=x0.dtype, device=x0.device)
+            raise ValueError(
+                f"this AMPN has a noise input ({self.noise_channels} channels): pass `noise` "
+                "(or build it with noise_channels=0)"
+            )
         step_code = None
         if self.step_encoding is not None:
             if step is None:
@@ -238,14 +244,14 @@ class AMPN(nn.Module):
             h.append(self.node_encoders["fine" if k == 0 else "coarse"](torch.cat(parts, dim=-1)))
 
         mesh_index, mesh_e, contact_index, contact_e, contact_mask = [], [], [], [], []
-        for lk in names:
-            key = (lk, "mesh", lk)
+        for k in range(num_levels):
+            key = edge_type(MESH, k)
             mesh_index.append(edge_index_dict[key])
-            mesh_e.append(self.edge_encoders["mesh"](edge_attr_dict[key]))
-            key = (lk, "contact", lk)
+            mesh_e.append(self.edge_encoders[MESH](edge_attr_dict[key]))
+            key = edge_type(CONTACT, k)
             if key in edge_index_dict:
                 contact_index.append(edge_index_dict[key])
-                contact_e.append(self.edge_encoders["contact"](edge_attr_dict[key]))
+                contact_e.append(self.edge_encoders[CONTACT](edge_attr_dict[key]))
             else:
                 contact_index.append(mesh_index[-1].new_empty(2, 0))
                 contact_e.append(mesh_e[-1].new_empty(0, self.hidden_channels))
@@ -253,13 +259,10 @@ class AMPN(nn.Module):
 
         down_index, down_e, up_index, up_e = [], [], [], []
         for k in range(num_levels - 1):
-            fine, coarse = names[k], names[k + 1]
-            key = (fine, "down", coarse)
-            down_index.append(edge_index_dict[key])
-            down_e.append(self.edge_encoders["down"](edge_attr_dict[key]))
-            key = (coarse, "up", fine)
-            up_index.append(edge_index_dict[key])
-            up_e.append(self.edge_encoders["up"](edge_attr_dict[key]))
+            for rel, index, e in ((DOWN, down_index, down_e), (UP, up_index, up_e)):
+                key = edge_type(rel, k)
+                index.append(edge_index_dict[key])
+                e.append(self.edge_encoders[rel](edge_attr_dict[key]))
 
         def intra_stack(stack: nn.ModuleList, k: int) -> None:
             for conv in stack:
@@ -288,5 +291,6 @@ class AMPN(nn.Module):
         return (
             f"fine_in_channels={self.fine_in_channels}, coarse_in_channels={self.coarse_in_channels}, "
             f"out_channels={self.out_channels}, hidden_channels={self.hidden_channels}, "
+            f"mlp_channels={self.mlp_channels}, noise_channels={self.noise_channels}, "
             f"num_levels={self.num_levels}, aggr={self.aggr!r}"
         )

@@ -1,6 +1,6 @@
 r"""ROBIN mode: an :class:`~torch_ampn.nn.AMPN` as a DDPM denoiser with ``K`` diffusion steps.
 
-Parameterisation (following ROBIN, arXiv 2506.06045, as settled in DESIGN.md):
+Parameterisation (following ROBIN, arXiv 2506.06045, as described in docs/model.md):
 
 * **Target** :math:`x_0`: the normalised residual :math:`\Delta u^t` of the ``l0`` nodes,
   ``[N_0, C]``. The conditioning (node and edge features) is the same at every step; only the
@@ -30,6 +30,8 @@ sampling is one forward pass. The step index the network sees is 0-based (``k - 
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -193,45 +195,27 @@ class DiffusionAMPN(nn.Module):
 
     def loss(
         self,
-        target: Tensor,
-        x_dict: dict[str, Tensor],
-        edge_index_dict: dict[EdgeType, Tensor],
-        edge_attr_dict: dict[EdgeType, Tensor],
-        batch_dict: dict[str, Tensor] | None = None,
-        contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+        *args: Any,
         node_mask: Tensor | None = None,
-        noise: Tensor | None = None,
-        step: Tensor | None = None,
-        generator: torch.Generator | None = None,
         huber_delta: float | None = None,
-        network: nn.Module | None = None,
+        **kwargs: Any,
     ) -> Tensor:
         r"""The training loss: MSE between predicted and true ``v`` at a random step per graph.
 
+        With ``K = 1`` this is the plain MSE of AMPN against the normalised residual.
+
         Args:
-            target: See :meth:`error`.
-            x_dict: See :meth:`error`.
-            edge_index_dict: See :meth:`error`.
-            edge_attr_dict: See :meth:`error`.
-            batch_dict: See :meth:`error`.
-            contact_mask_dict: See :meth:`error`.
+            *args: ``target, x_dict, edge_index_dict, edge_attr_dict`` of :meth:`error`.
             node_mask: ``BoolTensor[N_0]``: nodes that enter the loss (e.g. ply nodes); all if ``None``.
             huber_delta: Use the Huber form of the squared error beyond this error
                 (:func:`pointwise_loss`); ``None``: plain MSE (the paper).
-            noise: See :meth:`error`.
-            step: See :meth:`error`.
-            generator: See :meth:`error`.
-            network: See :meth:`error`.
+            **kwargs: The other arguments of :meth:`error` (``batch_dict``, ``contact_mask_dict``,
+                ``noise``, ``step``, ``generator``, ``network``).
 
         Returns:
             Scalar loss (float32).
         """
-        error = self.error(
-            target, x_dict, edge_index_dict, edge_attr_dict, batch_dict=batch_dict,
-            contact_mask_dict=contact_mask_dict, noise=noise, step=step, generator=generator,
-            network=network,
-        )  # fmt: skip
-        return masked_mean(pointwise_loss(error, huber_delta), node_mask)
+        return masked_mean(pointwise_loss(self.error(*args, **kwargs), huber_delta), node_mask)
 
     def sample(
         self,

@@ -28,7 +28,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.hierarchical_data import (
+    CONTACT,
+    DOWN,
+    MESH,
+    UP,
+    EdgeType,
+    HierarchicalData,
+    edge_type,
+    level_name,
+)
 from torch_ampn.data.node_type import NodeType
 
 #: Gripper features per node and gripper: d_ij (3), |d_ij| (1), d_ij / (|d_ij| + eps) (3).
@@ -39,7 +48,7 @@ GRIPPER_FEATURES_SUMMED = 7
 EDGE_FEATURES_CURRENT = 4
 EDGE_FEATURES_WITH_INITIAL = 8
 #: Edge relations that carry the initial relative position.
-RELATIONS_WITH_INITIAL = ("mesh", "down", "up")
+RELATIONS_WITH_INITIAL = (MESH, DOWN, UP)
 
 
 def num_fine_node_features(num_components: int, num_grippers: int, fiber_channels: int = 3) -> int:
@@ -136,12 +145,7 @@ def fine_node_features(
     fiber: Tensor,
     component: Tensor,
     num_components: int,
-    pos: Tensor,
-    gripper_pos: Tensor,
-    gripper_force: Tensor,
-    batch: Tensor | None = None,
-    alpha: float = 3e-2,
-    eps: float = 1e-8,
+    gripper: Tensor,
 ) -> Tensor:
     r"""Features of the fine (``l0``) nodes, without the noise input.
 
@@ -152,17 +156,12 @@ def fine_node_features(
         fiber: Fiber direction ``[N, 3]`` (unit vector, zero on tools); any width ``[N, F]`` is accepted.
         component: Component id ``LongTensor[N]`` in ``0 .. num_components - 1``.
         num_components: Number of components ``C`` (width of the component one-hot).
-        pos: Current positions ``[N, 3]``.
-        gripper_pos: Gripper positions ``[G, 3]`` or ``[B, G, 3]``.
-        gripper_force: Gripper forces, same shape as ``gripper_pos``.
-        batch: Graph of every node ``LongTensor[N]`` (batched data).
-        alpha: See :func:`gripper_features`.
-        eps: See :func:`gripper_features`.
+        gripper: The nodes' :func:`gripper_features` ``[N, 7 G + 7]``; its dtype is the output's.
 
     Returns:
         ``[N, num_fine_node_features(C, G, F)]`` in the column order of the module docstring.
     """
-    dtype = pos.dtype
+    dtype = gripper.dtype
     return torch.cat(
         [
             node_type_one_hot(node_type, dtype),
@@ -170,7 +169,7 @@ def fine_node_features(
             bc_disp.to(dtype),
             fiber.to(dtype),
             F.one_hot(component.long(), num_components).to(dtype),
-            gripper_features(pos, gripper_pos, gripper_force, batch, alpha, eps),
+            gripper,
         ],
         dim=-1,
     )
@@ -217,7 +216,7 @@ def hierarchical_features(
     num_levels: int | None = None,
     alpha: float = 3e-2,
     eps: float = 1e-8,
-) -> tuple[dict[str, Tensor], dict[tuple[str, str, str], Tensor]]:
+) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
     """All node and edge features of a (batched) :class:`~torch_ampn.data.HierarchicalData`.
 
     Reads ``data["l0"]``'s ``pos0``, ``pos``, ``prev_disp``, ``bc_disp``, ``node_type``,
@@ -251,12 +250,7 @@ def hierarchical_features(
             fine.fiber,
             fine.component,
             num_components,
-            pos,
-            data.gripper_pos,
-            data.gripper_force,
-            batch,
-            alpha,
-            eps,
+            gripper_features(pos, data.gripper_pos, data.gripper_force, batch, alpha, eps),
         )
     }
     pos_l, pos0_l = [pos], [pos0]
@@ -266,23 +260,23 @@ def hierarchical_features(
         pos0_l.append(pos0[idx])
         x_dict[level_name(k)] = coarse_node_features(fine.node_type[idx], pos.dtype)
 
-    edge_attr_dict: dict[tuple[str, str, str], Tensor] = {}
+    edge_attr_dict: dict[EdgeType, Tensor] = {}
     for k in range(num_levels):
-        lk = level_name(k)
-        for rel in ("mesh", "contact"):
-            key = (lk, rel, lk)
+        for rel in (MESH, CONTACT):
+            key = edge_type(rel, k)
             if key in data.edge_types:
                 ei = data[key].edge_index
             else:
                 ei = torch.empty(2, 0, dtype=torch.long, device=pos.device)
-            initial = (pos0_l[k], pos0_l[k]) if rel == "mesh" else (None, None)
+            initial = (pos0_l[k], pos0_l[k]) if rel == MESH else (None, None)
             edge_attr_dict[key] = edge_features(ei, pos_l[k], pos_l[k], *initial)
         if k + 1 < num_levels:
-            lc = level_name(k + 1)
-            edge_attr_dict[(lk, "down", lc)] = edge_features(
-                data[lk, "down", lc].edge_index, pos_l[k], pos_l[k + 1], pos0_l[k], pos0_l[k + 1]
+            key = edge_type(DOWN, k)
+            edge_attr_dict[key] = edge_features(
+                data[key].edge_index, pos_l[k], pos_l[k + 1], pos0_l[k], pos0_l[k + 1]
             )
-            edge_attr_dict[(lc, "up", lk)] = edge_features(
-                data[lc, "up", lk].edge_index, pos_l[k + 1], pos_l[k], pos0_l[k + 1], pos0_l[k]
+            key = edge_type(UP, k)
+            edge_attr_dict[key] = edge_features(
+                data[key].edge_index, pos_l[k + 1], pos_l[k], pos0_l[k + 1], pos0_l[k]
             )
     return x_dict, edge_attr_dict

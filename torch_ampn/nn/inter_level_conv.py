@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor, nn
-from torch_geometric.nn.conv import MessagePassing
+from torch import Tensor
+from torch_geometric.nn.aggr import Aggregation
 
-from torch_ampn.nn.intra_level_conv import check_aggr
-from torch_ampn.nn.mlp import MLP
+from torch_ampn.nn._conv import EmbeddingConv
 
 
-class InterLevelConv(MessagePassing):
+class InterLevelConv(EmbeddingConv):
     r"""The inter-level (up/down-sampling) message passing layer of AMPNs (seed paper, eq. (2)).
 
     A bipartite layer from sender nodes :math:`\mathcal{V}^{send}` to receiver nodes
@@ -25,7 +24,7 @@ class InterLevelConv(MessagePassing):
             + f_{V}\left(\mathbf{k}^{rec}_i, \bigoplus_{j \in \mathcal{N}(i)}
             \mathbf{e}^{\prime}_{ij}\right)
 
-    with bias-free linear maps :math:`\mathbf{W}` and :class:`~torch_ampn.nn.MLP` s :math:`f`.
+    with bias-free linear maps :math:`\mathbf{W}` and :class:`~torch_ampn.nn.LayerNormMLP` s :math:`f`.
     ``edge_index`` rows are ``(source j, target i)``: for down-sampling the sources are the
     fine level-:math:`l` nodes and the targets the level-:math:`l+1` nodes, for up-sampling
     the reverse. Sender embeddings are not changed. Receivers without incoming edges
@@ -33,8 +32,9 @@ class InterLevelConv(MessagePassing):
 
     Args:
         channels: Size :math:`d` of node and edge embeddings.
-        hidden_channels: Hidden width of the MLPs (paper: 128).
-        aggr: The aggregation :math:`\bigoplus`: ``"max"``, ``"sum"`` or ``"mean"``.
+        mlp_channels: Hidden width of the MLPs (paper: 128).
+        aggr: The aggregation :math:`\bigoplus`: ``"max"``, ``"sum"``, ``"mean"`` or a
+            ``torch_geometric.nn.aggr.Aggregation``.
         **kwargs: Further arguments of :class:`torch_geometric.nn.conv.MessagePassing`.
 
     Shapes:
@@ -45,21 +45,13 @@ class InterLevelConv(MessagePassing):
           :math:`(|\mathcal{E}|, d)`
     """
 
-    def __init__(self, channels: int, hidden_channels: int = 128, aggr: str = "max", **kwargs) -> None:
-        super().__init__(aggr=check_aggr(aggr), **kwargs)
-        self.channels = channels
-        self.hidden_channels = hidden_channels
-        self.lin_edge = nn.Linear(channels, channels, bias=False)
-        self.mlp_edge = MLP(3 * channels, channels, hidden_channels)
-        self.lin_node = nn.Linear(channels, channels, bias=False)
-        self.mlp_node = MLP(2 * channels, channels, hidden_channels)
+    def __init__(
+        self, channels: int, mlp_channels: int = 128, aggr: str | Aggregation = "max", **kwargs
+    ) -> None:
+        super().__init__(channels, mlp_channels, aggr, **kwargs)
+        self.lin_edge, self.mlp_edge = self.residual(), self.mlp(3)
+        self.lin_node, self.mlp_node = self.residual(), self.mlp(2)
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        """Reset all learnable parameters."""
-        super().reset_parameters()
-        for module in (self.lin_edge, self.mlp_edge, self.lin_node, self.mlp_node):
-            module.reset_parameters()
 
     def forward(
         self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor
@@ -82,13 +74,3 @@ class InterLevelConv(MessagePassing):
         agg = self.propagate(edge_index, edge_attr=edge_attr, size=size)  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr
-
-    def message(self, edge_attr: Tensor) -> Tensor:
-        """The message of edge ``(j, i)`` is its updated embedding: ``[E, d]``."""
-        return edge_attr
-
-    def __repr__(self) -> str:
-        return (
-            f"{self.__class__.__name__}({self.channels}, hidden_channels={self.hidden_channels}, "
-            f"aggr={self.aggr!r})"
-        )

@@ -3,23 +3,14 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor, nn
-from torch_geometric.nn.conv import MessagePassing
+from torch import Tensor
+from torch_geometric.nn.aggr import Aggregation
 from torch_geometric.typing import OptTensor
 
-from torch_ampn.nn.mlp import MLP
-
-AGGREGATIONS = ("max", "sum", "mean")
+from torch_ampn.nn._conv import EmbeddingConv
 
 
-def check_aggr(aggr: str) -> str:
-    """Return ``aggr`` if it is one of :data:`AGGREGATIONS`, else raise ``ValueError``."""
-    if aggr not in AGGREGATIONS:
-        raise ValueError(f"aggr must be one of {AGGREGATIONS}, got {aggr!r}")
-    return aggr
-
-
-class IntraLevelConv(MessagePassing):
+class IntraLevelConv(EmbeddingConv):
     r"""The intra-level message passing layer of AMPNs (seed paper, eq. (1)).
 
     Contact edges :math:`\mathcal{E}^C` and mesh edges :math:`\mathcal{E}^M` of one hierarchy
@@ -38,7 +29,7 @@ class IntraLevelConv(MessagePassing):
             \bigoplus_{j \in \mathcal{N}^M(i)} \mathbf{e}^{M\prime}_{ij}\right)
 
     where the :math:`\mathbf{W}` are bias-free linear maps (residual weight matrices), the
-    :math:`f` are :class:`~torch_ampn.nn.MLP` s (``LayerNorm -> Linear -> SiLU -> Linear``) of
+    :math:`f` are :class:`~torch_ampn.nn.LayerNormMLP` s (``LayerNorm -> Linear -> SiLU -> Linear``) of
     the concatenated arguments, :math:`i` is the edge's target and :math:`j` its source
     (``edge_index`` rows ``(j, i)``, PyG's ``source_to_target`` flow), and :math:`\bigoplus`
     is a max (default), sum or mean over the incoming edges; a node without incoming edges
@@ -46,8 +37,9 @@ class IntraLevelConv(MessagePassing):
 
     Args:
         channels: Size :math:`d` of node and edge embeddings.
-        hidden_channels: Hidden width of the MLPs (paper: 128).
-        aggr: The aggregation :math:`\bigoplus`: ``"max"``, ``"sum"`` or ``"mean"``.
+        mlp_channels: Hidden width of the MLPs (paper: 128).
+        aggr: The aggregation :math:`\bigoplus`: ``"max"``, ``"sum"``, ``"mean"`` or a
+            ``torch_geometric.nn.aggr.Aggregation`` (e.g. ``SoftmaxAggregation(learn=True)``).
         **kwargs: Further arguments of :class:`torch_geometric.nn.conv.MessagePassing`.
 
     Shapes:
@@ -61,30 +53,14 @@ class IntraLevelConv(MessagePassing):
           :math:`(|\mathcal{E}^M|, d)`, contact edge embeddings :math:`(|\mathcal{E}^C|, d)`
     """
 
-    def __init__(self, channels: int, hidden_channels: int = 128, aggr: str = "max", **kwargs) -> None:
-        super().__init__(aggr=check_aggr(aggr), **kwargs)
-        self.channels = channels
-        self.hidden_channels = hidden_channels
-        self.lin_contact = nn.Linear(channels, channels, bias=False)
-        self.mlp_contact = MLP(3 * channels, channels, hidden_channels)
-        self.lin_mesh = nn.Linear(channels, channels, bias=False)
-        self.mlp_mesh = MLP(3 * channels, channels, hidden_channels)
-        self.lin_node = nn.Linear(channels, channels, bias=False)
-        self.mlp_node = MLP(3 * channels, channels, hidden_channels)
+    def __init__(
+        self, channels: int, mlp_channels: int = 128, aggr: str | Aggregation = "max", **kwargs
+    ) -> None:
+        super().__init__(channels, mlp_channels, aggr, **kwargs)
+        self.lin_contact, self.mlp_contact = self.residual(), self.mlp(3)
+        self.lin_mesh, self.mlp_mesh = self.residual(), self.mlp(3)
+        self.lin_node, self.mlp_node = self.residual(), self.mlp(3)
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        """Reset all learnable parameters."""
-        super().reset_parameters()
-        for module in (
-            self.lin_contact,
-            self.mlp_contact,
-            self.lin_mesh,
-            self.mlp_mesh,
-            self.lin_node,
-            self.mlp_node,
-        ):
-            module.reset_parameters()
 
     def forward(
         self,
@@ -131,13 +107,3 @@ class IntraLevelConv(MessagePassing):
 
         x = self.lin_node(x) + self.mlp_node(torch.cat([x, agg_contact, agg_mesh], dim=-1))  # [N, d]
         return x, e_mesh, e_contact
-
-    def message(self, edge_attr: Tensor) -> Tensor:
-        """The message of edge ``(j, i)`` is its updated embedding: ``[E, d]``."""
-        return edge_attr
-
-    def __repr__(self) -> str:
-        return (
-            f"{self.__class__.__name__}({self.channels}, hidden_channels={self.hidden_channels}, "
-            f"aggr={self.aggr!r})"
-        )

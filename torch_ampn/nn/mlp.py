@@ -1,4 +1,4 @@
-"""The MLP used inside every message passing layer of an AMPN."""
+"""LayerNormMLP: the MLP inside every message passing layer of an AMPN."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 
 
-class MLP(nn.Module):
+class LayerNormMLP(nn.Module):
     r"""Two-layer perceptron with input layer normalisation, as in the seed paper.
 
     .. math::

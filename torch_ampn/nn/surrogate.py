@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
+from torch_ampn.data.hierarchical_data import RELATIONS, HierarchicalData, level_name
 from torch_ampn.nn.ampn import AMPN, EdgeType
 from torch_ampn.nn.diffusion import DiffusionAMPN
 from torch_ampn.nn.features import (
@@ -19,8 +20,6 @@ from torch_ampn.nn.features import (
 from torch_ampn.nn.multilevel_loss import multilevel_mse
 from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.transforms.contact import ComponentRadiusGraph
-
-RELATIONS = ("mesh", "contact", "down", "up")
 
 
 class AMPNSurrogate(nn.Module):
@@ -38,17 +37,14 @@ class AMPNSurrogate(nn.Module):
     Args:
         num_components: Components of the mesh ``C`` (plies and tools; 6 for the default dataset).
         num_grippers: Grippers ``G`` (2 for the default dataset).
-        hidden_channels: Latent size :math:`d` (paper: 128).
         num_levels: Levels of the V-cycle, ``L + 1`` (paper: 4; 1 = flat MeshGraphNet baseline).
-        pre_layers: Layers of the Pre stack (paper: 3).
-        down_layers: Layers of the Down stack (paper: 2).
-        solve_layers: Layers of the Solve stack (paper: 5).
-        post_layers: Layers of the Post stack (paper: 3).
-        up_layers: Layers of the Up stack (paper: 2).
-        aggr: Aggregation of all layers.
         diffusion_steps: ``K`` of ROBIN mode; 1 = AMPN with the plain MSE objective.
         contact_radius: Contact radius ``r`` (mm).
         contact_k: Contact neighbours per other component.
+        contact_mode: ``"component_knn"`` (the paper) or ``"radius"`` (every node within ``r``,
+            any component); see :class:`~torch_ampn.transforms.ComponentRadiusGraph`.
+        contact_positions: ``"current"`` (the paper: edges rebuilt from the positions of every
+            step) or ``"initial"`` (edges from the initial state, kept for the whole rollout: ROBIN).
         level_radius_scale: Per-level radius scale of the contact edges (see
             :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
         gripper_alpha: Distance decay :math:`\alpha` of the gripper features.
@@ -64,29 +60,28 @@ class AMPNSurrogate(nn.Module):
         coarse_loss_weight: :math:`\lambda` of the multilevel loss
             (:func:`~torch_ampn.nn.multilevel_mse`): the squared errors of the residual error
             restricted to every coarse level are added with this weight; 0 (the paper): plain MSE.
+        **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
+            ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
+            by default). The noise input and the diffusion-step encoding are set here.
     """
 
     def __init__(
         self,
         num_components: int = 6,
         num_grippers: int = 2,
-        hidden_channels: int = 128,
         num_levels: int = 4,
-        pre_layers: int = 3,
-        down_layers: int = 2,
-        solve_layers: int = 5,
-        post_layers: int = 3,
-        up_layers: int = 2,
-        aggr: str = "max",
         diffusion_steps: int = 1,
         contact_radius: float = 3.0,
         contact_k: int = 3,
+        contact_mode: str = "component_knn",
+        contact_positions: str = "current",
         level_radius_scale: float | Sequence[float] | None = None,
         gripper_alpha: float = 3e-2,
         center_target: bool = True,
         predict_change: bool = False,
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
+        **network: Any,
     ) -> None:
         super().__init__()
         if huber_delta is not None and huber_delta <= 0:
@@ -107,21 +102,21 @@ class AMPNSurrogate(nn.Module):
         self.huber_delta = huber_delta
         self.coarse_loss_weight = coarse_loss_weight
         self.contact = ComponentRadiusGraph(
-            contact_radius, contact_k, level_radius_scale=level_radius_scale, num_components=num_components
+            contact_radius,
+            contact_k,
+            level_radius_scale=level_radius_scale,
+            num_components=num_components,
+            mode=contact_mode,
+            positions=contact_positions,
         )
         fine_in = num_fine_node_features(num_components, num_grippers)
         model = AMPN(
             fine_in,
-            hidden_channels=hidden_channels,
             num_levels=num_levels,
-            pre_layers=pre_layers,
-            down_layers=down_layers,
-            solve_layers=solve_layers,
-            post_layers=post_layers,
-            up_layers=up_layers,
-            aggr=aggr,
+            noise_channels=3,  # ROBIN's noise input: the noisy target (K = 1: pure N(0, 1) noise)
             num_step_frequencies=4 if diffusion_steps > 1 else 0,
             max_step=max(diffusion_steps - 1, 1),
+            **network,
         )
         self.diffusion = DiffusionAMPN(model, diffusion_steps)
         self.node_norm = nn.ModuleDict(

@@ -28,6 +28,8 @@ class AMPNCLI(LightningCLI):
         """Link model and data arguments."""
         parser.link_arguments("model.contact_radius", "data.contact_radius")
         parser.link_arguments("model.contact_k", "data.contact_k")
+        parser.link_arguments("model.contact_mode", "data.contact_mode")
+        parser.link_arguments("model.contact_positions", "data.contact_positions")
         parser.link_arguments("model.num_levels", "data.max_levels")
 
 

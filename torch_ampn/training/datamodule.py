@@ -15,14 +15,10 @@ from torch_geometric.loader import DataLoader
 from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, split_files
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
-from torch_ampn.data_cli import generate
 from torch_ampn.sim.config import StampFormingConfig
+from torch_ampn.sim.dataset import generate_dataset
 from torch_ampn.training.items import RolloutDataset, identity_collate
 from torch_ampn.transforms.contact import ComponentRadiusGraph
-
-
-def _config_from_dict(values: dict[str, Any]) -> StampFormingConfig:
-    return StampFormingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
 class AMPNDataModule(L.LightningDataModule):
@@ -59,6 +55,9 @@ class AMPNDataModule(L.LightningDataModule):
         min_coarse_nodes: Stop coarsening below this many nodes.
         contact_radius: Contact radius of training windows (linked to the model's).
         contact_k: Contact neighbours per other component (linked to the model's).
+        contact_mode: Contact edge mode (linked to the model's; see
+            :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
+        contact_positions: Positions the contact edges are built from (linked to the model's).
         limit_val_trajectories: Use only the first ones of the validation split (rollouts are costly).
         cache_windows: Keep the training windows with their contact edges in memory after the
             first epoch (:class:`~torch_ampn.data.StepDataset`'s ``cache_samples``); saves the
@@ -85,6 +84,8 @@ class AMPNDataModule(L.LightningDataModule):
         min_coarse_nodes: int = 16,
         contact_radius: float = 3.0,
         contact_k: int = 3,
+        contact_mode: str = "component_knn",
+        contact_positions: str = "current",
         limit_val_trajectories: int | None = None,
         cache_windows: bool = False,
         predict_file: str | None = None,
@@ -94,7 +95,9 @@ class AMPNDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self.data_dir = Path(data_dir)
-        self.contact = ComponentRadiusGraph(contact_radius, contact_k)
+        self.contact = ComponentRadiusGraph(
+            contact_radius, contact_k, mode=contact_mode, positions=contact_positions
+        )
         self.hierarchies = HierarchyCache(
             self.data_dir / "cache", max_levels=max_levels, min_coarse_nodes=min_coarse_nodes
         )
@@ -106,7 +109,7 @@ class AMPNDataModule(L.LightningDataModule):
         """Simulate the missing trajectories (``generate=True``), or check that the folder has data."""
         hp = self.hparams
         if hp.generate:
-            generate(
+            generate_dataset(
                 self.data_dir,
                 hp.num_train,
                 hp.num_val,
@@ -126,9 +129,8 @@ class AMPNDataModule(L.LightningDataModule):
         if not overrides:
             return None
         base = StampFormingConfig.paper() if self.hparams.resolution == "paper" else StampFormingConfig()
-        values = {**base.to_dict(), **overrides}
         try:
-            cfg = _config_from_dict(values)
+            cfg = StampFormingConfig.from_dict(overrides, base=base)
             cfg.validate()
         except (TypeError, ValueError) as err:
             raise ValueError(f"data.simulator: invalid simulator settings {overrides} ({err})") from err
@@ -140,7 +142,7 @@ class AMPNDataModule(L.LightningDataModule):
         if not spec.exists():
             return StampFormingConfig()
         try:
-            return _config_from_dict(json.loads(spec.read_text())["simulator"])
+            return StampFormingConfig.from_dict(json.loads(spec.read_text())["simulator"])
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(
                 f"{spec}: field 'simulator' is not a valid simulator configuration ({err})"

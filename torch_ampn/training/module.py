@@ -13,12 +13,38 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from torch_ampn.baselines import RigidWithPunch, static_plies
+from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.training.items import RolloutItem
 from torch_ampn.training.report import TestReport, write_prediction
 from torch_ampn.training.schedule import WarmupExponentialDecay
+
+# The module's arguments that build its AMPNSurrogate (and, through it, the AMPN); the rest are
+# training, rollout and output options.
+SURROGATE_ARGUMENTS = (
+    "num_components",
+    "num_grippers",
+    "hidden_channels",
+    "mlp_channels",
+    "num_levels",
+    "pre_layers",
+    "down_layers",
+    "solve_layers",
+    "post_layers",
+    "up_layers",
+    "aggr",
+    "diffusion_steps",
+    "contact_radius",
+    "contact_k",
+    "contact_mode",
+    "contact_positions",
+    "center_target",
+    "predict_change",
+    "huber_delta",
+    "coarse_loss_weight",
+)
 
 
 class AMPNLightningModule(L.LightningModule):
@@ -42,29 +68,33 @@ class AMPNLightningModule(L.LightningModule):
       ``output_dir`` (see :class:`~torch_ampn.training.report.TestReport`).
     * **predict**: rollouts of new process settings without ground truth (XDMF + PNG).
 
+    The first arguments, :data:`SURROGATE_ARGUMENTS`, build the
+    :class:`~torch_ampn.nn.AMPNSurrogate` and its :class:`~torch_ampn.nn.AMPN` (documented
+    there; the defaults are the paper's). They are flat arguments of the module so that configs
+    read ``model.num_levels``, the command line takes ``--model.diffusion_steps 5``, the CLI
+    links the contact settings into the data module, and checkpoints hold plain values.
+
     Args:
         num_components: Components of the mesh (plies + tools; 6 for the default dataset).
         num_grippers: Grippers (2 for the default dataset).
-        hidden_channels: Latent size (paper: 128).
-        num_levels: V-cycle levels ``L + 1`` (paper: 4; 1 = flat MeshGraphNet baseline).
-        pre_layers: Pre stack layers.
-        down_layers: Down stack layers.
-        solve_layers: Solve stack layers.
-        post_layers: Post stack layers.
-        up_layers: Up stack layers.
-        aggr: Aggregation (``"max"``, ``"sum"``, ``"mean"``).
-        diffusion_steps: ROBIN's ``K`` (1 = AMPN).
-        contact_radius: Contact radius (mm); the data module builds training contact edges with it.
+        hidden_channels: Latent size d (paper: 128).
+        mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
+        num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
+        pre_layers: Pre stack layers (paper: 3).
+        down_layers: Down stack layers (paper: 2).
+        solve_layers: Solve stack layers (paper: 5).
+        post_layers: Post stack layers (paper: 3).
+        up_layers: Up stack layers (paper: 2).
+        aggr: Aggregation of all layers (``"max"``, ``"sum"``, ``"mean"``).
+        diffusion_steps: ROBIN's K (1 = AMPN).
+        contact_radius: Contact radius r (mm).
         contact_k: Contact neighbours per other component.
-        center_target: Standardise the target residual (``True``) or only scale it (``False``:
-            zero output = node at rest; see :class:`~torch_ampn.nn.AMPNSurrogate`).
-        predict_change: The network predicts the change of the residual (MeshGraphNets-style
-            acceleration target) instead of the residual (the paper's target); see
-            :class:`~torch_ampn.nn.AMPNSurrogate`.
-        huber_delta: Huber form of the loss beyond this normalised error (``None``: the paper's
-            MSE); see :class:`~torch_ampn.nn.AMPNSurrogate`.
-        coarse_loss_weight: Weight of the coarse levels' restricted errors in the loss
-            (:func:`~torch_ampn.nn.multilevel_mse`; 0: the paper's MSE).
+        contact_mode: ``"component_knn"`` (the paper) or ``"radius"`` (all nodes within r).
+        contact_positions: ``"current"`` (the paper: rebuilt every step) or ``"initial"`` (ROBIN).
+        center_target: Standardise the target residual (``False``: only scale it).
+        predict_change: Predict the change of the residual instead of the residual.
+        huber_delta: Huber form of the loss beyond this normalised error (``None``: MSE).
+        coarse_loss_weight: Weight of the multilevel loss's coarse terms (0: the paper's MSE).
         lr: Peak learning rate (paper: 1e-4).
         final_lr: Learning rate at the last step (paper: 1e-5).
         warmup_steps: Linear warm-up steps (paper: 1,000).
@@ -104,6 +134,7 @@ class AMPNLightningModule(L.LightningModule):
         num_components: int = 6,
         num_grippers: int = 2,
         hidden_channels: int = 128,
+        mlp_channels: int = 128,
         num_levels: int = 4,
         pre_layers: int = 3,
         down_layers: int = 2,
@@ -114,6 +145,8 @@ class AMPNLightningModule(L.LightningModule):
         diffusion_steps: int = 1,
         contact_radius: float = 3.0,
         contact_k: int = 3,
+        contact_mode: str = "component_knn",
+        contact_positions: str = "current",
         center_target: bool = True,
         predict_change: bool = False,
         huber_delta: float | None = None,
@@ -137,25 +170,7 @@ class AMPNLightningModule(L.LightningModule):
         if not 0.0 <= pushforward <= 1.0:
             raise ValueError(f"pushforward is a probability in [0, 1], got {pushforward}")
         self.save_hyperparameters()
-        self.surrogate = AMPNSurrogate(
-            num_components=num_components,
-            num_grippers=num_grippers,
-            hidden_channels=hidden_channels,
-            num_levels=num_levels,
-            pre_layers=pre_layers,
-            down_layers=down_layers,
-            solve_layers=solve_layers,
-            post_layers=post_layers,
-            up_layers=up_layers,
-            aggr=aggr,
-            diffusion_steps=diffusion_steps,
-            contact_radius=contact_radius,
-            contact_k=contact_k,
-            center_target=center_target,
-            predict_change=predict_change,
-            huber_delta=huber_delta,
-            coarse_loss_weight=coarse_loss_weight,
-        )
+        self.surrogate = AMPNSurrogate(**{name: self.hparams[name] for name in SURROGATE_ARGUMENTS})
         self._report: TestReport | None = None
         # torch.compile wrapper of the network, built at the first training step; kept out of the
         # module tree (plain attribute) so that state_dict keys and weight averaging do not see it.
@@ -172,6 +187,21 @@ class AMPNLightningModule(L.LightningModule):
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
             self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Rebuild the surrogate for checkpoints written before ``mlp_channels`` existed.
+
+        Their layer MLPs were ``hidden_channels`` wide (the default then); Lightning calls this
+        hook after building the module from the checkpoint's hyper-parameters and before loading
+        its weights, so the surrogate is rebuilt with that width here.
+        """
+        saved = checkpoint.get("hyper_parameters", {})
+        if "mlp_channels" in saved or self.hparams.mlp_channels == self.hparams.hidden_channels:
+            return
+        self.hparams.mlp_channels = self.hparams.hidden_channels
+        device = next(self.surrogate.parameters()).device
+        arguments = {name: self.hparams[name] for name in SURROGATE_ARGUMENTS}
+        self.surrogate = AMPNSurrogate(**arguments).to(device)
 
     def fit_statistics(self, samples: Any) -> None:
         """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
@@ -247,21 +277,23 @@ class AMPNLightningModule(L.LightningModule):
     def pushforward_inputs(self, data: HierarchicalData) -> HierarchicalData:
         r"""Replace the true :math:`x^{t-1}` of ply nodes by the prediction from :math:`x^{t-2}`, in place.
 
-        The window ``(t-2, t-1)`` is rebuilt from the fields of :func:`~torch_ampn.data.step_sample`
-        (``prev_disp``, ``prev_prev_disp``, ``prev_gripper_*``; its contact edges are those of
-        :math:`x^{t-1}`); with the predicted :math:`\widehat{\Delta u}^{t-1}` (no gradient) and
-        its error :math:`e = \widehat{\Delta u}^{t-1} - \Delta u^{t-1}` on ply nodes of windows
-        with ``t >= 2``: ``pos`` :math:`+ e`, ``prev_disp`` :math:`+ e`, ``target`` :math:`- e`.
+        The window ``(t-2, t-1)`` is built with :func:`~torch_ampn.data.set_window` from the
+        fields :func:`~torch_ampn.data.step_sample` provides (``prev_disp``, ``prev_prev_disp``,
+        ``prev_gripper_*``; its contact edges are those of :math:`x^{t-1}`); with the predicted
+        :math:`\widehat{\Delta u}^{t-1}` (no gradient) and its error
+        :math:`e = \widehat{\Delta u}^{t-1} - \Delta u^{t-1}` on ply nodes of windows with
+        ``t >= 2``: ``pos`` :math:`+ e`, ``prev_disp`` :math:`+ e`, ``target`` :math:`- e`.
         """
         fine = data["l0"]
-        prior = copy.copy(data)
-        prior_fine = prior["l0"]
-        tool = ~fine.ply_mask[:, None]  # [N, 1]
-        prior_fine.pos = fine.pos - fine.prev_disp  # x^{t-2}
-        prior_fine.prev_disp = fine.prev_prev_disp
-        prior_fine.bc_disp = torch.where(tool, fine.prev_disp, torch.zeros_like(fine.prev_disp))
-        prior.gripper_pos = data.prev_gripper_pos
-        prior.gripper_force = data.prev_gripper_force
+        prior = set_window(
+            copy.copy(data),
+            pos=fine.pos - fine.prev_disp,  # x^{t-2}
+            prev_disp=fine.prev_prev_disp,
+            next_disp=fine.prev_disp,
+            ply_mask=fine.ply_mask,
+            gripper_pos=data.prev_gripper_pos,
+            gripper_force=data.prev_gripper_force,
+        )
         with torch.no_grad():
             predicted = self.surrogate.predict_residual(prior).to(fine.pos.dtype)  # [N, 3]
         step = data.step[fine.batch] if "batch" in fine else data.step.expand(fine.num_nodes)  # [N]

@@ -65,7 +65,8 @@ class TestReport:
 
     Files: ``test_rmse.csv`` (one row per trajectory: model and baseline RMSE in mm,
     averaged over steps, and the rollout time), ``test_summary.json``,
-    ``rmse_over_time.png``, ``final_shape_<name>.png`` (first trajectory) and, with
+    ``rmse_over_time.csv`` (one row per step: the model's and every baseline's RMSE, mean
+    over trajectories), ``rmse_over_time.png``, ``final_shape_<name>.png`` (first trajectory) and, with
     ``xdmf``, ``xdmf/<name>.xdmf`` (true and predicted displacement, error field).
     """
 
@@ -147,6 +148,7 @@ class TestReport:
         os.replace(tmp, path)
         summary = self.summary()
         _atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
+        _atomic_write_text(self.folder / "rmse_over_time.csv", self.over_time_csv())
         self.plot_over_time(self.folder / "rmse_over_time.png", summary)
         print("\nRollout RMSE [mm] over ply nodes, averaged over steps (model vs trivial baselines):")
         print(self.table())
@@ -164,6 +166,14 @@ class TestReport:
         )
         print(f"wrote {path}, {self.folder / 'rmse_over_time.png'} and more in {self.folder}")
         return summary
+
+    def over_time_csv(self) -> str:
+        """CSV text: ``step`` and the mean RMSE over trajectories of the model and every baseline."""
+        means = {name: torch.stack(curves).mean(0) for name, curves in self.curves.items()}  # [T+1] each
+        steps = next(iter(means.values())).numel()
+        lines = [",".join(["step", *means])]
+        lines += [",".join([str(t), *(repr(float(m[t])) for m in means.values())]) for t in range(steps)]
+        return "\n".join(lines) + "\n"
 
     def plot_over_time(self, path: Path, summary: dict[str, float]) -> None:
         """Mean RMSE per step of the model and the baselines (thin lines: single trajectories)."""

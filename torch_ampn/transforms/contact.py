@@ -17,7 +17,10 @@ from torch_geometric.transforms import BaseTransform
 
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.transforms._checks import check_backend, check_count, check_radius
-from torch_ampn.transforms.radius import component_radius_table, table_to_edge_index
+from torch_ampn.transforms.radius import component_radius_table, plain_radius_graph, table_to_edge_index
+
+MODES = ("component_knn", "radius")
+POSITIONS = ("current", "initial")
 
 
 @functional_transform("component_radius_graph")
@@ -40,6 +43,13 @@ class ComponentRadiusGraph(BaseTransform):
     follow the coarse mesh spacing); with a sequence, level ``k`` uses
     ``r * level_radius_scale[k]`` (it needs an entry for every level).
 
+    Two variants for comparison with the seed paper's choice (``mode="component_knn"``,
+    ``positions="current"``): ``mode="radius"`` links *all* nodes within ``r``, of any
+    component (the conventional radius graph, :func:`~torch_ampn.transforms.plain_radius_graph`;
+    no ``k`` limit, no static tables); ``positions="initial"`` builds the edges from the
+    initial positions ``data["l0"].pos0``, so they stay the same for a whole trajectory
+    (ROBIN's static contact edges).
+
     Args:
         r: Contact radius (inclusive) of level 0, ``> 0``.
         k: Neighbours per other component, ``>= 1``.
@@ -53,6 +63,10 @@ class ComponentRadiusGraph(BaseTransform):
         backend: ``"auto"``, ``"grid"`` or ``"torch_cluster"``.
         merge_levels: Search all levels in one call when they share the radius (same result,
             fewer calls; meant for GPUs, where a search is bound by per-call overhead).
+        mode: ``"component_knn"`` (default: the ``k`` nearest of every other component) or
+            ``"radius"`` (every node within ``r``, any component).
+        positions: ``"current"`` (default: ``data["l0"].pos``, rebuilt every step) or
+            ``"initial"`` (``data["l0"].pos0``: the same edges at every step).
     """
 
     def __init__(
@@ -64,6 +78,8 @@ class ComponentRadiusGraph(BaseTransform):
         static: bool = False,
         backend: str = "auto",
         merge_levels: bool = False,
+        mode: str = "component_knn",
+        positions: str = "current",
     ) -> None:
         self.r = check_radius(r)
         self.k = check_count(k, "k")
@@ -75,6 +91,14 @@ class ComponentRadiusGraph(BaseTransform):
         self.merge_levels = bool(merge_levels)
         self.backend = backend
         check_backend(backend)
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if positions not in POSITIONS:
+            raise ValueError(f"positions must be one of {POSITIONS}, got {positions!r}")
+        if mode == "radius" and (self.static or self.merge_levels):
+            raise ValueError("mode='radius' has no fixed-size tables: use static=False, merge_levels=False")
+        self.mode = mode
+        self.positions = positions
 
     def level_radius(self, level: int) -> float:
         """Contact radius of ``level`` (``0`` is the finest)."""
@@ -94,7 +118,7 @@ class ComponentRadiusGraph(BaseTransform):
         one call (levels kept apart like the graphs of a batch); the result is the same as
         level by level.
         """
-        pos, comp = _read_level0(data)
+        pos, comp = _read_level0(data, "pos0" if self.positions == "initial" else "pos")
         levels = range(data.num_levels)
         inputs = []  # (pos_k, comp_k, batch_k) per level
         for level in levels:
@@ -106,6 +130,10 @@ class ComponentRadiusGraph(BaseTransform):
         num_comp = self.num_components
         if num_comp is None:
             num_comp = int(comp.max()) + 1 if comp.numel() else 1
+        if self.mode == "radius":
+            for level, ((p, _, b), radius) in enumerate(zip(inputs, radii, strict=True)):
+                data.contact(level).edge_index = plain_radius_graph(p, radius, batch=b, backend=self.backend)
+            return data
         if self.merge_levels and len(set(radii)) == 1 and len(inputs) > 1:
             tables = self._merged_tables(inputs, radii[0], num_comp)
         else:
@@ -151,7 +179,8 @@ class ComponentRadiusGraph(BaseTransform):
         return (
             f"{self.__class__.__name__}(r={self.r}, k={self.k}, "
             f"level_radius_scale={self.level_radius_scale}, num_components={self.num_components}, "
-            f"static={self.static}, backend={self.backend!r}, merge_levels={self.merge_levels})"
+            f"static={self.static}, backend={self.backend!r}, merge_levels={self.merge_levels}, "
+            f"mode={self.mode!r}, positions={self.positions!r})"
         )
 
 
@@ -170,12 +199,12 @@ def _check_level_scale(scale: float | Sequence[float] | None) -> float | tuple[f
     return values[0] if single else tuple(values)
 
 
-def _read_level0(data: HierarchicalData) -> tuple[Tensor, Tensor]:
-    """Current positions and component ids of the fine level, checked."""
+def _read_level0(data: HierarchicalData, positions: str) -> tuple[Tensor, Tensor]:
+    """Positions (field ``positions``) and component ids of the fine level, checked."""
     if not isinstance(data, HierarchicalData):
         raise ValueError(f"ComponentRadiusGraph expects a HierarchicalData, got {type(data).__name__}")
     store = data["l0"]
-    for name in ("pos", "component"):
+    for name in (positions, "component"):
         if name not in store:
             raise ValueError(f'ComponentRadiusGraph needs data["l0"].{name}')
-    return store.pos, store.component
+    return store[positions], store.component
