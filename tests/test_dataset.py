@@ -5,16 +5,11 @@ from torch_geometric.loader import DataLoader
 from torch_ampn.data import HierarchicalData, StepDataset, TrajectoryDataset, step_sample
 from torch_ampn.data import dataset as dataset_module
 from torch_ampn.data import hierarchy as hierarchy_module
+from torch_ampn.testing import small_trajectory
 
 
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_trajectory import small_trajectory
-
     root = tmp_path_factory.mktemp("ds")
     for split, seeds in (("train", [0, 1, 2]), ("val", [3])):
         for s in seeds:

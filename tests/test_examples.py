@@ -75,19 +75,20 @@ def test_step_predictability_names_an_empty_folder(tmp_path):
     assert str(tmp_path) in result.stderr and "no trajectory" in result.stderr
 
 
-def test_step_predictability_model_errors_agree_with_the_data_references():
+def test_step_predictability_model_errors_agree_with_the_data_references(small_sim):
     """A 'model' that returns the truth errs 0; one that returns zero / the last residual
     reproduces the data-only ``zero`` / ``const_vel`` columns (computed independently)."""
+    from dataclasses import replace
     from types import SimpleNamespace
 
     import torch
 
     from torch_ampn.data.dataset import HierarchyCache
-    from torch_ampn.sim import StampFormingConfig, simulate
+    from torch_ampn.sim import simulate
 
     example = _load_example("step_predictability")
-    cfg = StampFormingConfig(ply_cells=5, punch_cells=(4, 4), die_cells=(4, 4), num_steps=5)
-    traj = simulate(cfg, seed=3)
+    # 5 saved steps over the same stroke: a trajectory of its own, not a prefix of small_runs[0]
+    traj = simulate(replace(small_sim, num_steps=5), seed=3)
     hierarchy = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)(traj)
     stats = example.step_statistics(traj)
 

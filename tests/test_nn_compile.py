@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torch_ampn.nn import AMPN, InterLevelConv, IntraLevelConv, hierarchical_features, num_fine_node_features
-from torch_ampn.testing import random_edge_index, toy_hierarchy
+from torch_ampn.testing import random_inter_level_inputs, random_intra_level_inputs, toy_hierarchy
 
 
 @pytest.fixture(autouse=True)
@@ -14,15 +14,9 @@ def fresh_dynamo():
     torch._dynamo.reset()
 
 
-def intra_inputs(n=20, e=60, m=30, d=16):
-    g = torch.Generator().manual_seed(0)
-    return (
-        torch.randn(n, d, generator=g),
-        random_edge_index(n, n, e, g),
-        torch.randn(e, d, generator=g),
-        random_edge_index(n, n, m, g),
-        torch.randn(m, d, generator=g),
-        torch.rand(m, generator=g) > 0.3,
+def intra_inputs():
+    return random_intra_level_inputs(
+        num_nodes=20, num_mesh_edges=60, num_contact_edges=30, channels=16, mask_drop_prob=0.3
     )
 
 
@@ -45,10 +39,8 @@ def test_intra_level_conv_has_no_graph_breaks(masked):
 
 def test_inter_level_conv_has_no_graph_breaks():
     conv = InterLevelConv(16, mlp_channels=32)
-    g = torch.Generator().manual_seed(0)
-    x = (torch.randn(20, 16, generator=g), torch.randn(6, 16, generator=g))
-    edge_index, e = random_edge_index(20, 6, 30, g), torch.randn(30, 16, generator=g)
-    explanation = torch._dynamo.explain(conv)(x, edge_index, e)
+    x_src, x_dst, edge_index, e = random_inter_level_inputs(num_src=20, num_dst=6, num_edges=30, channels=16)
+    explanation = torch._dynamo.explain(conv)((x_src, x_dst), edge_index, e)
     assert explanation.graph_break_count == 0 and explanation.graph_count == 1
 
 

@@ -4,17 +4,7 @@ import pytest
 import torch
 
 from torch_ampn.nn import InterLevelConv
-from torch_ampn.testing import random_edge_index
-
-
-def mlp_ref(mlp, z):
-    """LayerNorm -> Linear -> SiLU -> Linear written out for one float64 vector."""
-    mu = z.mean()
-    var = ((z - mu) ** 2).mean()
-    z = (z - mu) / torch.sqrt(var + mlp.norm.eps) * mlp.norm.weight.double() + mlp.norm.bias.double()
-    h = mlp.lin1.weight.double() @ z + mlp.lin1.bias.double()
-    h = h / (1.0 + torch.exp(-h))
-    return mlp.lin2.weight.double() @ h + mlp.lin2.bias.double()
+from torch_ampn.testing import aggregate_reference, layer_norm_mlp_reference, random_inter_level_inputs
 
 
 def inter_ref(conv, x_src, x_dst, edge_index, e, aggr="max"):
@@ -25,28 +15,18 @@ def inter_ref(conv, x_src, x_dst, edge_index, e, aggr="max"):
     for m in range(edge_index.size(1)):
         j, i = int(edge_index[0, m]), int(edge_index[1, m])
         z = torch.cat([x_dst[i], x_src[j], e[m]])
-        new_e.append(conv.lin_edge.weight.double() @ e[m] + mlp_ref(conv.mlp_edge, z))
+        new_e.append(conv.lin_edge.weight.double() @ e[m] + layer_norm_mlp_reference(conv.mlp_edge, z))
     out = []
     for i in range(x_dst.size(0)):
         inc = [new_e[m] for m in range(len(new_e)) if int(edge_index[1, m]) == i]
-        if inc:
-            s = torch.stack(inc)
-            agg = {"max": s.max(0).values, "sum": s.sum(0), "mean": s.mean(0)}[aggr]
-        else:
-            agg = torch.zeros(d, dtype=torch.float64)
+        agg = aggregate_reference(inc, aggr, d)
         z = torch.cat([x_dst[i], agg])
-        out.append(conv.lin_node.weight.double() @ x_dst[i] + mlp_ref(conv.mlp_node, z))
+        out.append(conv.lin_node.weight.double() @ x_dst[i] + layer_norm_mlp_reference(conv.mlp_node, z))
     return torch.stack(out), torch.stack(new_e)
 
 
 def bipartite(n_src=15, n_dst=6, e=24, d=8, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return (
-        torch.randn(n_src, d, generator=g),
-        torch.randn(n_dst, d, generator=g),
-        random_edge_index(n_src, n_dst, e, g),
-        torch.randn(e, d, generator=g),
-    )
+    return random_inter_level_inputs(n_src, n_dst, e, d, seed)
 
 
 def test_shapes_and_repr():

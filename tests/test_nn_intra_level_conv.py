@@ -5,24 +5,12 @@ import torch
 from torch_geometric.nn.aggr import MaxAggregation, MeanAggregation, SoftmaxAggregation, SumAggregation
 
 from torch_ampn.nn import IntraLevelConv
-from torch_ampn.testing import DEVICES, random_edge_index
-
-
-def mlp_ref(mlp, z):
-    """LayerNorm -> Linear -> SiLU -> Linear written out for one float64 vector."""
-    mu = z.mean()
-    var = ((z - mu) ** 2).mean()
-    z = (z - mu) / torch.sqrt(var + mlp.norm.eps) * mlp.norm.weight.double() + mlp.norm.bias.double()
-    h = mlp.lin1.weight.double() @ z + mlp.lin1.bias.double()
-    h = h / (1.0 + torch.exp(-h))
-    return mlp.lin2.weight.double() @ h + mlp.lin2.bias.double()
-
-
-def aggregate_ref(values, aggr, d):
-    if not values:
-        return torch.zeros(d, dtype=torch.float64)
-    stacked = torch.stack(values)
-    return {"max": stacked.max(0).values, "sum": stacked.sum(0), "mean": stacked.mean(0)}[aggr]
+from torch_ampn.testing import (
+    DEVICES,
+    aggregate_reference,
+    layer_norm_mlp_reference,
+    random_intra_level_inputs,
+)
 
 
 def intra_ref(conv, x, mesh_index, e_mesh, contact_index, e_contact, aggr="max"):
@@ -34,17 +22,19 @@ def intra_ref(conv, x, mesh_index, e_mesh, contact_index, e_contact, aggr="max")
         out = []
         for m in range(index.size(1)):
             j, i = int(index[0, m]), int(index[1, m])
-            out.append(lin.weight.double() @ e[m] + mlp_ref(mlp, torch.cat([x[i], x[j], e[m]])))
+            z = torch.cat([x[i], x[j], e[m]])
+            out.append(lin.weight.double() @ e[m] + layer_norm_mlp_reference(mlp, z))
         return out
 
     new_c = edges(contact_index, e_contact, conv.lin_contact, conv.mlp_contact)
     new_m = edges(mesh_index, e_mesh, conv.lin_mesh, conv.mlp_mesh)
     x_new = []
     for i in range(n):
-        agg_c = aggregate_ref([new_c[m] for m in range(len(new_c)) if int(contact_index[1, m]) == i], aggr, d)
-        agg_m = aggregate_ref([new_m[m] for m in range(len(new_m)) if int(mesh_index[1, m]) == i], aggr, d)
+        in_c = [new_c[m] for m in range(len(new_c)) if int(contact_index[1, m]) == i]
+        in_m = [new_m[m] for m in range(len(new_m)) if int(mesh_index[1, m]) == i]
+        agg_c, agg_m = aggregate_reference(in_c, aggr, d), aggregate_reference(in_m, aggr, d)
         z = torch.cat([x[i], agg_c, agg_m])
-        x_new.append(conv.lin_node.weight.double() @ x[i] + mlp_ref(conv.mlp_node, z))
+        x_new.append(conv.lin_node.weight.double() @ x[i] + layer_norm_mlp_reference(conv.mlp_node, z))
 
     def stack(v):
         return torch.stack(v) if v else torch.zeros(0, d, dtype=torch.float64)
@@ -53,14 +43,7 @@ def intra_ref(conv, x, mesh_index, e_mesh, contact_index, e_contact, aggr="max")
 
 
 def graph(n=12, e=30, m=14, d=8, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return (
-        torch.randn(n, d, generator=g),
-        random_edge_index(n, n, e, g),
-        torch.randn(e, d, generator=g),
-        random_edge_index(n, n, m, g),
-        torch.randn(m, d, generator=g),
-    )
+    return random_intra_level_inputs(n, e, m, d, seed)
 
 
 def test_shapes_and_repr():

@@ -10,19 +10,12 @@ from torch_ampn.data import HierarchyCache, NodeType, step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse
-from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch
-
-SMALL = StampFormingConfig(ply_cells=5, punch_cells=(4, 4), die_cells=(4, 4), num_steps=6)
+from torch_ampn.sim import process_trajectory
 
 
 @pytest.fixture(scope="module")
-def runs():
-    return simulate_batch(SMALL, seeds=[3, 4])
-
-
-@pytest.fixture(scope="module")
-def hierarchy(runs):
-    return HierarchyCache(None, max_levels=3, min_coarse_nodes=4)(runs[0])
+def hierarchy(small_runs):
+    return HierarchyCache(None, max_levels=3, min_coarse_nodes=4)(small_runs[0])
 
 
 def test_rmse_matches_hand_computation():
@@ -39,8 +32,8 @@ def test_rmse_matches_hand_computation():
     assert masked[1] == pytest.approx(math.sqrt(9.0 / 3.0)) and masked[2] == 0
 
 
-def test_oracle_rollout_reproduces_the_trajectory_and_its_windows(runs, hierarchy):
-    traj = runs[0]
+def test_oracle_rollout_reproduces_the_trajectory_and_its_windows(small_runs, hierarchy):
+    traj = small_runs[0]
     seen = []
 
     def oracle(data):
@@ -58,8 +51,8 @@ def test_oracle_rollout_reproduces_the_trajectory_and_its_windows(runs, hierarch
     torch.testing.assert_close(pred, traj.pos, atol=1e-4, rtol=0)
 
 
-def test_rollout_keeps_tools_on_their_prescribed_path(runs, hierarchy):
-    traj = runs[0]
+def test_rollout_keeps_tools_on_their_prescribed_path(small_runs, hierarchy):
+    traj = small_runs[0]
     surrogate = AMPNSurrogate(
         hidden_channels=8,
         num_levels=hierarchy.num_levels,
@@ -77,8 +70,8 @@ def test_rollout_keeps_tools_on_their_prescribed_path(runs, hierarchy):
     assert torch.isfinite(pred).all()
 
 
-def test_rollout_never_reads_future_ply_positions(runs, hierarchy):
-    traj = runs[0]
+def test_rollout_never_reads_future_ply_positions(small_runs, hierarchy):
+    traj = small_runs[0]
     poisoned = traj.to("cpu")
     poisoned.pos = traj.pos.clone()
     poisoned.pos[1:, traj.ply_mask] = float("nan")  # a rollout must not need them
@@ -91,8 +84,8 @@ def test_rollout_never_reads_future_ply_positions(runs, hierarchy):
     assert torch.isfinite(pred).all()
 
 
-def test_static_baseline_error_is_the_rms_displacement(runs, hierarchy):
-    traj = runs[0]
+def test_static_baseline_error_is_the_rms_displacement(small_runs, hierarchy):
+    traj = small_runs[0]
     pred = rollout(static_plies, traj, hierarchy)
     ply = traj.ply_mask
     u = traj.pos[:, ply] - traj.pos[0, ply]  # [T+1, n, 3]
@@ -117,18 +110,18 @@ def test_rigid_with_punch_by_hand():
         RigidWithPunch(0.0)
 
 
-def test_process_trajectory_matches_the_simulated_setting(runs):
-    traj = runs[1]
-    setting = process_trajectory(SMALL, seed=4)
+def test_process_trajectory_matches_the_simulated_setting(small_runs, small_sim):
+    traj = small_runs[1]
+    setting = process_trajectory(small_sim, seed=4)
     assert torch.equal(setting.gripper_nodes, traj.gripper_nodes)
     torch.testing.assert_close(setting.gripper_anchor, traj.gripper_anchor)
     torch.testing.assert_close(setting.gripper_force, traj.gripper_force)
     tools = traj.node_type != NodeType.PLY
     torch.testing.assert_close(setting.pos[:, tools], traj.pos[:, tools])
-    assert torch.equal(setting.pos[:, ~tools], traj.pos[:1, ~tools].expand(SMALL.num_steps + 1, -1, -1))
+    assert torch.equal(setting.pos[:, ~tools], traj.pos[:1, ~tools].expand(small_sim.num_steps + 1, -1, -1))
     assert setting.meta["ground_truth"] is False
     explicit = process_trajectory(
-        SMALL, traj.meta["gripper_edge_fraction"], traj.gripper_force.double().tolist()
+        small_sim, traj.meta["gripper_edge_fraction"], traj.gripper_force.double().tolist()
     )
     assert torch.equal(explicit.gripper_nodes, traj.gripper_nodes)
 
@@ -144,15 +137,15 @@ def test_process_trajectory_matches_the_simulated_setting(runs):
         (dict(seed=1, gripper_positions=[0.5, 0.5]), "either a seed"),
     ],
 )
-def test_process_trajectory_refuses_bad_settings(kwargs, match):
+def test_process_trajectory_refuses_bad_settings(small_sim, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        process_trajectory(SMALL, **kwargs)
+        process_trajectory(small_sim, **kwargs)
 
 
-def test_contact_edges_from_the_initial_state_serve_every_step(runs, hierarchy):
+def test_contact_edges_from_the_initial_state_serve_every_step(small_runs, hierarchy):
     from torch_ampn.transforms import ComponentRadiusGraph
 
-    traj = runs[0]
+    traj = small_runs[0]
     initial = ComponentRadiusGraph(12.0, 1, positions="initial")
     expected = ComponentRadiusGraph(12.0, 1)(step_sample(traj, 1, hierarchy))  # built from x^0
     seen = []

@@ -15,6 +15,7 @@ from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, step_sample  # noqa: E402
 from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
+from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
     AMPNLightningModule,
@@ -23,7 +24,6 @@ from torch_ampn.training import (  # noqa: E402
 )
 from torch_ampn.training.cli import main  # noqa: E402
 
-TINY_SIM = dict(ply_cells=5, punch_cells=[4, 4], die_cells=[4, 4], num_steps=6)
 SMALL_MODEL = dict(
     hidden_channels=16, mlp_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
     post_layers=1, up_layers=1,
@@ -31,10 +31,9 @@ SMALL_MODEL = dict(
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory):
+def data_dir(tmp_path_factory, small_sim):
     root = tmp_path_factory.mktemp("dataset")
-    cfg = StampFormingConfig.from_dict(TINY_SIM)
-    generate_dataset(root, 2, 1, 1, config=cfg, workers=1, compile=False, progress=False)
+    generate_dataset(root, 2, 1, 1, config=small_sim, workers=1, compile=False, progress=False)
     return root
 
 
@@ -345,7 +344,12 @@ def test_datamodule_checks_model_and_predict_settings(data_dir, tmp_path):
 
 def test_datamodule_generates_an_empty_folder(tmp_path):
     dm = AMPNDataModule(
-        str(tmp_path / "new"), num_train=1, num_val=0, num_test=0, simulator=TINY_SIM, generate_workers=1
+        str(tmp_path / "new"),
+        num_train=1,
+        num_val=0,
+        num_test=0,
+        simulator=SMALL_SIMULATOR,
+        generate_workers=1,
     )
     dm.prepare_data()
     files = sorted((tmp_path / "new" / "train").glob("*.pt"))
@@ -397,6 +401,14 @@ def _config(tmp_path, data_dir):
     return path, out
 
 
+def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
+    """Arguments of ``torch-ampn test`` / ``predict`` that take everything else from ``ckpt``."""
+    args = ["--ckpt_path", str(ckpt), "--data.data_dir", str(data_dir), "--data.generate", "false"]
+    args += ["--data.min_coarse_nodes", "4", *extra]
+    args += ["--model.output_dir", str(out / "reports"), "--trainer.default_root_dir", str(out)]
+    return [subcommand, *args]
+
+
 def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
     config, out = _config(tmp_path, data_dir)
     main(["fit", "--config", str(config)])
@@ -414,23 +426,7 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
 
     # test needs only the checkpoint (+ where the data is): hyper-parameters come from it
     capsys.readouterr()
-    main(
-        [
-            "test",
-            "--ckpt_path",
-            str(ckpt),
-            "--data.data_dir",
-            str(data_dir),
-            "--data.generate",
-            "false",
-            "--data.min_coarse_nodes",
-            "4",
-            "--model.output_dir",
-            str(out / "reports"),
-            "--trainer.default_root_dir",
-            str(out),
-        ]
-    )
+    main(_from_checkpoint("test", ckpt, data_dir, out))
     printed = capsys.readouterr().out
     assert "best trivial baseline" in printed and "traj_200000" in printed
     reports = out / "reports"
@@ -462,25 +458,7 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
     settings.write_text(
         yaml.safe_dump([{"name": "wide", "gripper_positions": [0.2, 0.8], "gripper_forces": [90.0, 10.0]}])
     )
-    main(
-        [
-            "predict",
-            "--ckpt_path",
-            str(ckpt),
-            "--data.data_dir",
-            str(data_dir),
-            "--data.generate",
-            "false",
-            "--data.min_coarse_nodes",
-            "4",
-            "--data.predict_file",
-            str(settings),
-            "--model.output_dir",
-            str(out / "reports"),
-            "--trainer.default_root_dir",
-            str(out),
-        ]
-    )
+    main(_from_checkpoint("predict", ckpt, data_dir, out, "--data.predict_file", str(settings)))
     predicted = reports / "predict"
     for name in ("wide.xdmf", "wide.png", "wide.json"):
         assert (predicted / name).is_file(), name
@@ -659,13 +637,12 @@ def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network()
     assert [len(s) for s in (model.pre, model.down, model.solve, model.post, model.up)] == [1] * 5
 
 
-def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path):
+def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path, small_sim, small_runs):
     """A checkpoint written before ``mlp_channels`` existed (MLPs as wide as d = 8), with the
     residual that version predicted for a fixed window (made by ``tests/data`` 's writer)."""
     from pathlib import Path
 
     from torch_ampn.data import HierarchyCache
-    from torch_ampn.sim import simulate_batch
 
     data = Path(__file__).parent / "data"
     ref = torch.load(data / "legacy_0.1.0.dev0_reference.pt", weights_only=True)
@@ -674,7 +651,9 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path)
     module = AMPNLightningModule.load_from_checkpoint(legacy, weights_only=True)
     assert module.hparams.mlp_channels == module.hparams.hidden_channels == 8
     assert module.surrogate.model.pre[0].mlp_contact.hidden_channels == 8
-    traj = simulate_batch(StampFormingConfig(**ref["config"]), seeds=[ref["seed"]])[0]
+    # the reference's run is seed 3 of the small setting: small_runs[0] (a run does not depend on its batch)
+    assert StampFormingConfig(**ref["config"]) == small_sim and ref["seed"] == 3
+    traj = small_runs[0]
     cache = HierarchyCache(None, max_levels=ref["max_levels"], min_coarse_nodes=ref["min_coarse_nodes"])
     window = module.surrogate.contact(step_sample(traj, ref["t"], cache(traj)))
     generator = torch.Generator().manual_seed(ref["generator_seed"])

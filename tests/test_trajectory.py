@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from torch_ampn.data import NodeType, Trajectory, TrajectoryFormatError, rectangle_mesh
+from torch_ampn.data import Trajectory, TrajectoryFormatError
 from torch_ampn.data.meshio_io import (
     export_vtu_series,
     export_xdmf,
@@ -13,44 +13,7 @@ from torch_ampn.data.meshio_io import (
     read_vtu_series,
     read_xdmf,
 )
-
-
-def small_trajectory(steps: int = 4, seed: int = 0) -> Trajectory:
-    """Two plies and a die, with an arbitrary (random) motion; no simulator involved."""
-    g = torch.Generator().manual_seed(seed)
-    parts = []
-    for k in range(2):
-        pos, cells = rectangle_mesh(3, 2, (3.0, 2.0), (0.0, 0.0, 0.5 * k))
-        parts.append((pos, cells, NodeType.PLY))
-    pos, cells = rectangle_mesh(2, 2, (3.0, 2.0), (0.0, 0.0, -0.5), cell_type="quad")
-    parts.append((pos, cells, NodeType.DIE))
-    pos0, all_cells, comp, types, offset = [], [], [], [], 0
-    for c, (p, f, t) in enumerate(parts):
-        pos0.append(p)
-        all_cells.append(f + offset)
-        comp.append(torch.full((p.size(0),), c))
-        types.append(torch.full((p.size(0),), int(t)))
-        offset += p.size(0)
-    pos0 = torch.cat(pos0)
-    n = pos0.size(0)
-    motion = torch.cumsum(0.1 * torch.randn(steps, n, 3, generator=g), 0)
-    node_type = torch.cat(types)
-    motion[:, node_type == NodeType.DIE] = 0.0
-    fiber = torch.zeros(n, 3)
-    fiber[node_type == NodeType.PLY, 0] = 1.0
-    return Trajectory(
-        pos=torch.cat([pos0[None], pos0[None] + motion]),
-        time=torch.linspace(0, 1, steps + 1),
-        cells=all_cells,
-        component=torch.cat(comp),
-        node_type=node_type,
-        fiber=fiber,
-        names=["ply0", "ply1", "die"],
-        gripper_nodes=torch.tensor([[3, 15]]),
-        gripper_anchor=torch.tensor([[10.0, 0.0, 0.0]]),
-        gripper_force=torch.tensor([42.0]),
-        meta=dict(seed=seed),
-    )
+from torch_ampn.testing import small_trajectory
 
 
 def assert_same(a: Trajectory, b: Trajectory, atol: float = 0.0) -> None:
