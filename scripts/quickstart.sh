@@ -15,8 +15,8 @@
 set -euo pipefail
 SECONDS=0
 budget="${AMPN_QUICKSTART_SECONDS:-1140}"
-# seconds kept for the fit's start-up (statistics), its last validation, test and plots
-# (75 s measured on 2 cores: the fresh-clone job of 2026-11-24 ended 105 s inside a 180 s reserve)
+# seconds kept out of the fit's time limit for what runs outside its training loop: the fit's
+# start-up (normalisation statistics), its last validation, then the test and the plots
 reserve=100
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
