@@ -1,0 +1,136 @@
+"""benchmarks/compare.py end to end on a tiny budget: cells, the report's rows, resuming, a killed cell."""
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+pytest.importorskip("lightning")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_compare():
+    spec = importlib.util.spec_from_file_location("compare", ROOT / "benchmarks" / "compare.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["compare"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, small_sim):
+    from torch_ampn.sim import generate_dataset
+
+    root = tmp_path_factory.mktemp("compare")
+    generate_dataset(root / "data", 2, 1, 1, config=small_sim, workers=1, compile=False, progress=False)
+    config = {
+        "seed_everything": 0,
+        "trainer": {
+            "accelerator": "cpu",
+            "devices": 1,
+            "max_steps": 1000,
+            "val_check_interval": 1000,
+            "check_val_every_n_epoch": None,
+            "enable_model_summary": False,
+            "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "x"}},
+            "callbacks": [
+                {
+                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+                    "init_args": {"dirpath": "x", "monitor": "val/rollout_rmse", "mode": "min"},
+                }
+            ],
+        },
+        "model": {
+            "hidden_channels": 8,
+            "mlp_channels": 8,
+            "num_levels": 2,
+            "pre_layers": 1,
+            "down_layers": 1,
+            "solve_layers": 1,
+            "post_layers": 1,
+            "up_layers": 1,
+            "contact_radius": 12.0,
+            "contact_k": 1,
+            "warmup_steps": 1,
+            "statistics_samples": 8,
+            "touch_radii": [3.0, 9.0],
+            "export_xdmf": False,
+        },  # fmt: skip
+        "data": {"data_dir": "unused", "generate": False, "min_coarse_nodes": 4, "batch_size": 2},
+    }
+    (root / "tiny.yaml").write_text(yaml.safe_dump(config))
+    args = [
+        "--config", str(root / "tiny.yaml"), "--data-dir", str(root / "data"), "--steps", "3",
+        "--seeds", "0", "--results", str(root / "results"), "--workdir", str(root / "work"),
+        "--simulator-mode", "eager",
+    ]  # fmt: skip
+    return root, args
+
+
+def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys):
+    root, args = setup
+    compare = _load_compare()
+    assert compare.main([*args, "--variants", "ampn", "robin5"]) == 0
+    results = root / "results"
+    cells = {v: json.loads((results / f"{v}_seed0.json").read_text()) for v in ("ampn", "robin5")}
+    for variant, cell in cells.items():
+        summary = json.loads((root / "work" / f"{variant}_seed0" / "test" / "test_summary.json").read_text())
+        assert cell["rmse"] == pytest.approx(summary["rollout_rmse"])  # the test's own number
+        per_trajectory = list(cell["rmse_per_trajectory"].values())
+        assert cell["rmse"] == pytest.approx(sum(per_trajectory) / len(per_trajectory))
+        curve = cell["rmse_over_time"]["model"]
+        assert (
+            len(curve) == 7 and curve[0] == 0 and sum(curve[1:]) / 6 == pytest.approx(cell["rmse"], rel=1e-5)
+        )
+        assert cell["speedup"] == pytest.approx(cell["simulator"]["fastest"] / cell["rollout_seconds"])
+        assert cell["contact_edges_per_step"]["fine"] > 0 and cell["steps"] == 3
+        states = torch.load(results / f"{variant}_seed0.states.pt", weights_only=True)
+        assert states["steps"] == [4, 5, 6] and states["pos"].shape[0] == 3
+    assert cells["robin5"]["changes"] == {"model.diffusion_steps": 5}
+    assert cells["ampn"]["layers"] == cells["robin5"]["layers"] == 5
+    # the report: one row per variant (mean over the seeds present), the references and baselines
+    table = json.loads((results / "table.json").read_text())["rows"]
+    assert [r["variant"] for r in table] == ["ampn", "robin5", "simulator_rerun", "static", "rigid"]
+    assert table[0]["rmse"] == pytest.approx(cells["ampn"]["rmse"]) and table[0]["seeds"] == [0]
+    assert table[2]["rmse"] < table[3]["rmse"]  # the simulator repeats itself better than "no motion"
+    markdown = (results / "table.md").read_text()
+    assert "ROBIN, K = 5" in markdown and "missing" not in markdown
+    for name in ("compare_rmse_over_time.png", "compare_fig2.png", "compare_fig3.png"):
+        assert (results / "figures" / name).is_file(), name
+    # a second run finds both cells done: nothing is fitted again
+    logs = {v: (root / "work" / f"{v}_seed0" / "log.txt").stat().st_mtime for v in cells}
+    capsys.readouterr()
+    assert compare.main([*args, "--variants", "ampn", "robin5", "--no-figures"]) == 0
+    assert "2 cells done before, skipped" in capsys.readouterr().out
+    assert {v: (root / "work" / f"{v}_seed0" / "log.txt").stat().st_mtime for v in cells} == logs
+    # the report marks a variant without cells as missing
+    assert compare.main([*args, "--variants", "ampn", "flat", "--report", "--no-figures"]) == 0
+    assert "| flat MeshGraphNet (1 level) | missing |" in (results / "table.md").read_text()
+
+
+def test_a_killed_cell_leaves_no_result(setup):
+    root, args = setup
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "compare.py"), *args, "--variants", "flat"]
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    log = root / "work" / "flat_seed0" / "log.txt"
+    deadline = time.monotonic() + 300
+    while not (log.exists() and "fit" in log.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)  # inside the fit
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert log.exists(), "the cell never started"
+    results = root / "results"
+    assert not (results / "flat_seed0.json").exists() and not (results / "flat_seed0.states.pt").exists()
+    assert not list(results.glob(".*.tmp"))
