@@ -123,8 +123,8 @@ class AMPNLightningModule(L.LightningModule):
         output_dir: Where test/predict write their files (default: the logger's folder, else ``outputs``).
         export_xdmf: Write XDMF rollouts in test and predict.
         compile_network: Run the training step's network through ``torch.compile(dynamic=True)``
-            (about 1.3x faster per step on 2 CPU cores after a compile of about half a minute;
-            see ``benchmarks/training_step.py``). Validation, test and predict stay eager, and
+            (faster per step after a one-time compile at the first step; ``benchmarks/training_step.py``
+            measures both). Validation, test and predict stay eager, and
             checkpoints are the same as without it. If compiling fails (e.g. no C++ compiler),
             training warns and goes on eager.
     """
