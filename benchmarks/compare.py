@@ -151,8 +151,9 @@ def simulator_reference(data_dir: Path, compile: bool = True) -> dict[str, Any]:
     cfg = StampFormingConfig.from_dict(spec["simulator"])
     stored = list(TrajectoryDataset(data_dir, "test"))
     seeds = [int(t.meta["seed"]) for t in stored]
-    if compile:  # compile outside the timings
-        simulate_batch(cfg, seeds[:1], compile=True)
+    if compile:  # compile outside the timings (each seed: its gripper layout may change the shapes)
+        for seed in seeds:
+            simulate_batch(cfg, [seed], compile=True)
         simulate_batch(cfg, seeds, compile=True)
     start = time.perf_counter()
     singles = [simulate_batch(cfg, [s], compile=compile)[0] for s in seeds]
