@@ -404,9 +404,9 @@ def _config(tmp_path, data_dir):
 def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
     """Arguments of ``torch-ampn test`` / ``predict`` that take everything else from ``ckpt``."""
     args = ["--ckpt_path", str(ckpt), "--data.data_dir", str(data_dir), "--data.generate", "false"]
-    args += ["--data.min_coarse_nodes", "4", *extra]
+    args += ["--data.min_coarse_nodes", "4"]
     args += ["--model.output_dir", str(out / "reports"), "--trainer.default_root_dir", str(out)]
-    return [subcommand, *args]
+    return [subcommand, *args, *extra]  # given later, ``extra`` wins
 
 
 def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
@@ -464,6 +464,17 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
         assert (predicted / name).is_file(), name
     info = json.loads((predicted / "wide.json").read_text())
     assert info["gripper_force"] == [90.0, 10.0]
+
+    # settings given with --ckpt_path win where they do not change the network ...
+    elsewhere = out / "elsewhere"
+    extra = ["--data.predict_file", str(settings), "--model.output_dir", str(elsewhere)]
+    main(_from_checkpoint("predict", ckpt, data_dir, out, *extra, "--model.export_xdmf", "false"))
+    assert (elsewhere / "predict" / "wide.png").is_file()
+    assert not (elsewhere / "predict" / "wide.xdmf").exists()
+    # ... and are refused with a message where they would
+    refused = r"model.hidden_channels=8 \(the checkpoint has 16\).*cannot be changed"
+    with pytest.raises(SystemExit, match=refused):
+        main(_from_checkpoint("test", ckpt, data_dir, out, "--model.hidden_channels", "8"))
 
 
 def test_change_target_statistics_and_prediction_by_hand(data_dir, monkeypatch):

@@ -8,21 +8,41 @@
 The model's contact settings and level count are linked into the data module (the
 training windows are built with the same contact edges the model rolls out with), and
 the Trainer clips gradients at norm 1 by default (the paper's recipe).
+
+With ``--ckpt_path`` the model's settings come from the checkpoint. Settings given on the
+command line or in a config file still win where they do not change the network
+(:data:`RUNTIME_OPTIONS`: output folder, XDMF export, rollout seed, baseline radii, compiled
+training step); any other given setting that differs from the checkpoint's is refused with
+a message, never ignored.
 """
 
 from __future__ import annotations
 
+import copy
+import sys
 import warnings
 from collections.abc import Sequence
+from typing import Any
 
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from torch_ampn.training.datamodule import AMPNDataModule
 from torch_ampn.training.module import AMPNLightningModule
 
+#: Options of :class:`AMPNLightningModule` that do not change the network: given with
+#: ``--ckpt_path``, they win over the checkpoint's values.
+RUNTIME_OPTIONS = ("output_dir", "export_xdmf", "rollout_seed", "touch_radii", "compile_network")
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal values, with lists and tuples alike (YAML gives lists, checkpoints may hold tuples)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return list(a) == list(b)
+    return a == b
+
 
 class AMPNCLI(LightningCLI):
-    """LightningCLI with the model -> data links of torch-ampn."""
+    """LightningCLI with torch-ampn's model -> data links; checkpoint settings never hide given ones."""
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         """Link model and data arguments."""
@@ -31,6 +51,30 @@ class AMPNCLI(LightningCLI):
         parser.link_arguments("model.contact_mode", "data.contact_mode")
         parser.link_arguments("model.contact_positions", "data.contact_positions")
         parser.link_arguments("model.num_levels", "data.max_levels")
+
+    def _parse_ckpt_path(self) -> None:
+        """Take the model's settings from ``--ckpt_path``, keeping given runtime options; refuse conflicts."""
+        subcommand = self.config.get("subcommand")
+        if not subcommand or not self.config[subcommand].get("ckpt_path"):
+            return super()._parse_ckpt_path()
+        given = copy.deepcopy(self.config[subcommand].model)
+        defaults = self.parser._subcommands_action._name_parser_map[subcommand].get_defaults().model
+        super()._parse_ckpt_path()
+        model = self.config[subcommand].model
+        conflicts = []
+        for key, value in vars(given).items():
+            if _same(value, defaults.get(key)) or _same(value, model.get(key)):
+                continue
+            if key in RUNTIME_OPTIONS:
+                model[key] = value
+            else:
+                conflicts.append(f"model.{key}={value!r} (the checkpoint has {model.get(key)!r})")
+        if conflicts:
+            sys.exit(
+                f"torch-ampn {subcommand}: {self.config[subcommand].ckpt_path}: "
+                f"{', '.join(conflicts)}: these settings belong to the trained model and cannot be "
+                "changed with --ckpt_path; drop them (or train a new model)"
+            )
 
 
 def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
