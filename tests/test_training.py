@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -679,3 +680,58 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path,
     assert again.hparams.mlp_channels == 8
     for name, value in module.state_dict().items():
         assert torch.equal(value, again.state_dict()[name]), name
+
+
+# ---- bad input: one line naming the file and the field ------------------------------------------
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("broken.json", '[{"gripper_positions": [0.5, 0.5], ', r"broken.json: not valid JSON \(Expecting"),
+        ("broken.yaml", "- gripper_positions: [0.5, 0.5\n  gripper_forces: 3",
+         r"broken.yaml: not valid YAML \("),
+        ("object.json", '{"gripper_positions": [0.5]}', r"object.json: expected a non-empty list"),
+        ("words.yaml", "- {gripper_positions: [a, b], gripper_forces: [1, 2]}",
+         r"words.yaml: setting 0, field 'gripper_positions': expected a list of numbers"),
+        ("three.json", '[{"name": "t", "gripper_positions": [0.1, 0.2, 0.3], "gripper_forces": [1, 2]}]',
+         r"three.json: setting 0 \(t\): gripper_positions needs 2 values, got 3"),
+        ("outside.json", '[{"gripper_positions": [0.5, 1.5], "gripper_forces": [1, 2]}]',
+         r"outside.json: setting 0 \(setting_000\): gripper_positions are fractions of the edge in \[0, 1\]"),
+    ],
+)  # fmt: skip
+def test_bad_predict_files_are_refused_naming_file_and_field(data_dir, tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    dm = AMPNDataModule(str(data_dir), generate=False, predict_file=str(path), min_coarse_nodes=4)
+    with pytest.raises(ValueError, match=message) as info:
+        dm.setup("predict")
+    assert "\n" not in str(info.value)
+
+
+def test_bad_checkpoints_and_input_errors_end_in_one_line(data_dir, tmp_path):
+    import subprocess
+    import sys
+
+    truncated = tmp_path / "truncated.ckpt"
+    legacy = Path(__file__).parent / "data" / "legacy_0.1.0.dev0.ckpt"
+    truncated.write_bytes(legacy.read_bytes()[:5000])
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": {"lr": 1.0}}, foreign)
+    cases = [
+        (truncated, r"truncated.ckpt: not a readable checkpoint \("),
+        (foreign, r"foreign.ckpt: not a torch-ampn checkpoint \(field 'hyper_parameters'"),
+        (tmp_path / "missing.ckpt", r"missing.ckpt: no such checkpoint file"),
+    ]
+    for path, message in cases:
+        with pytest.raises(SystemExit, match=message):
+            main(["test", "--ckpt_path", str(path), "--data.data_dir", str(data_dir)])
+    # the console script: an input error is one line on stderr, exit status 1, no traceback
+    bad = tmp_path / "broken.json"
+    bad.write_text("[")
+    args = ["predict", "--ckpt_path", str(legacy), "--data.data_dir", str(data_dir)]
+    args += ["--data.generate", "false", "--data.min_coarse_nodes", "4", "--data.predict_file", str(bad)]
+    args += ["--trainer.logger", "false"]
+    script = "from torch_ampn.training.cli import entry_point; entry_point()"
+    done = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, cwd=tmp_path)
+    last = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert last.startswith("torch-ampn: error: ") and f"{bad}: not valid JSON" in last

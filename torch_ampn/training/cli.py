@@ -19,9 +19,11 @@ a message, never ignored.
 from __future__ import annotations
 
 import copy
+import os
 import sys
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
@@ -41,6 +43,27 @@ def _same(a: Any, b: Any) -> bool:
     return a == b
 
 
+def _check_checkpoint(subcommand: str, path: str) -> None:
+    """Exit with a one-line message unless ``path`` is a readable torch-ampn checkpoint."""
+    import torch
+
+    if not Path(path).is_file():
+        sys.exit(f"torch-ampn {subcommand}: {path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as err:  # noqa: BLE001 - truncated, not a zip/pickle, unsafe objects, ...
+        reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+        sys.exit(f"torch-ampn {subcommand}: {path}: not a readable checkpoint ({reason})")
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        sys.exit(f"torch-ampn {subcommand}: {path}: not a Lightning checkpoint (no field 'state_dict')")
+    hparams = ckpt.get("hyper_parameters") or {}
+    if not all(k in hparams for k in ("num_components", "hidden_channels", "num_levels")):
+        sys.exit(
+            f"torch-ampn {subcommand}: {path}: not a torch-ampn checkpoint "
+            "(field 'hyper_parameters' lacks the AMPNLightningModule settings)"
+        )
+
+
 class AMPNCLI(LightningCLI):
     """LightningCLI with torch-ampn's model -> data links; checkpoint settings never hide given ones."""
 
@@ -57,6 +80,7 @@ class AMPNCLI(LightningCLI):
         subcommand = self.config.get("subcommand")
         if not subcommand or not self.config[subcommand].get("ckpt_path"):
             return super()._parse_ckpt_path()
+        _check_checkpoint(subcommand, self.config[subcommand].ckpt_path)
         given = copy.deepcopy(self.config[subcommand].model)
         defaults = self.parser._subcommands_action._name_parser_map[subcommand].get_defaults().model
         super()._parse_ckpt_path()
@@ -92,8 +116,18 @@ def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
 
 
 def entry_point() -> None:
-    """Console script ``torch-ampn``."""
-    main()
+    """Console script ``torch-ampn``: input errors end in one line on stderr (exit status 1), no traceback.
+
+    ``AMPN_TRACEBACK=1`` shows the traceback instead.
+    """
+    from torch_ampn.data.trajectory import TrajectoryFormatError
+
+    try:
+        main()
+    except (ValueError, FileNotFoundError, TrajectoryFormatError) as err:
+        if os.environ.get("AMPN_TRACEBACK"):
+            raise
+        sys.exit(f"torch-ampn: error: {' '.join(str(err).split())}")
 
 
 if __name__ == "__main__":

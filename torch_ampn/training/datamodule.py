@@ -177,19 +177,23 @@ class AMPNDataModule(L.LightningDataModule):
     def _predict_split(self) -> RolloutDataset:
         from torch_ampn.sim.simulate import process_trajectory
 
-        settings = self.predict_settings()
+        settings, source = self._predict_settings()
         cfg = self.simulator_config()
         names = [s.get("name") or f"setting_{i:03d}" for i, s in enumerate(settings)]
-
-        def load(i: int) -> Trajectory:
-            s = settings[i]
-            traj = process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"])
-            return traj
-
-        return RolloutDataset(names, load, self.hierarchies)
+        trajectories = []
+        for i, s in enumerate(settings):  # all checked before the first rollout
+            try:
+                trajectories.append(process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"]))
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{source}: setting {i} ({names[i]}): {err}") from None
+        return RolloutDataset(names, trajectories.__getitem__, self.hierarchies)
 
     def predict_settings(self) -> list[dict[str, Any]]:
         """The process settings to predict, checked (errors name the file and the field)."""
+        return self._predict_settings()[0]
+
+    def _predict_settings(self) -> tuple[list[dict[str, Any]], str]:
+        """``(settings, where they come from)``."""
         hp = self.hparams
         if hp.predict_file:
             path = Path(hp.predict_file)
@@ -199,9 +203,15 @@ class AMPNDataModule(L.LightningDataModule):
             if path.suffix in (".yaml", ".yml"):
                 import yaml
 
-                settings = yaml.safe_load(text)
+                try:
+                    settings = yaml.safe_load(text)
+                except yaml.YAMLError as err:
+                    raise ValueError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
             else:
-                settings = json.loads(text)
+                try:
+                    settings = json.loads(text)
+                except json.JSONDecodeError as err:
+                    raise ValueError(f"{path}: not valid JSON ({err})") from None
             source = str(path)
         elif hp.predict_gripper_positions is not None or hp.predict_gripper_forces is not None:
             positions, forces = hp.predict_gripper_positions or [], hp.predict_gripper_forces or []
@@ -225,7 +235,10 @@ class AMPNDataModule(L.LightningDataModule):
             for key in ("gripper_positions", "gripper_forces"):
                 if not isinstance(s, dict) or key not in s:
                     raise ValueError(f"{source}: setting {i} lacks field {key!r}")
-        return settings
+                values = s[key] if isinstance(s[key], list) else [s[key]]
+                if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+                    raise ValueError(f"{source}: setting {i}, field {key!r}: expected a list of numbers")
+        return settings, source
 
     # ---- dataloaders ----------------------------------------------------------------------------
     def train_dataloader(self) -> DataLoader:
