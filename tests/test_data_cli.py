@@ -27,11 +27,13 @@ def test_generate_is_resumable_and_replaces_broken_files(tmp_path, monkeypatch):
     calls = []
     real = dataset_module._simulate_chunk
     monkeypatch.setattr(dataset_module, "_simulate_chunk", lambda job: calls.append(job[1]) or real(job))
-    generate_dataset(tmp_path, 2, 1, 1, workers=1, compile=False, progress=False, config=TINY)
+    generate_dataset(tmp_path, 2, 1, 1, workers=1, batch=2, compile=False, progress=False, config=TINY)
     assert calls == []  # everything exists: nothing simulated again
     paths[1].write_bytes(b"truncated")
-    generate_dataset(tmp_path, 2, 1, 1, workers=1, compile=False, progress=False, config=TINY)
-    assert calls == [[("train", 1)]]
+    kept = paths[0].stat().st_mtime_ns
+    generate_dataset(tmp_path, 2, 1, 1, workers=1, batch=2, compile=False, progress=False, config=TINY)
+    assert calls == [[("train", 0), ("train", 1)]]  # the broken file's chunk, simulated whole ...
+    assert paths[0].stat().st_mtime_ns == kept  # ... but only the missing file is written
     assert torch.equal(Trajectory.load(paths[1]).pos, trajs[1].pos)  # deterministic regeneration
 
 
@@ -64,7 +66,7 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
 
 
 def test_convert_and_export_commands(tmp_path, capsys):
-    traj = dataset_module._simulate_chunk((TINY.to_dict(), [("train", 7)], str(tmp_path), False))
+    traj = dataset_module._simulate_chunk((TINY.to_dict(), [("train", 7)], [True], str(tmp_path), False))
     src = tmp_path / "train" / "traj_000007.pt"
     assert traj == [str(src)]
     assert data_cli.main(["export", str(src), "--out", str(tmp_path / "x" / "t.xdmf")]) == 0
@@ -74,3 +76,45 @@ def test_convert_and_export_commands(tmp_path, capsys):
     assert torch.equal(a.gripper_nodes, b.gripper_nodes)
     assert data_cli.main(["convert", str(tmp_path / "missing.xdmf"), "--out", str(tmp_path / "y.pt")]) == 2
     assert "missing.xdmf" in capsys.readouterr().err
+
+
+def test_shards_in_any_order_make_the_files_of_one_job(tmp_path):
+    sizes = (5, 1, 2)  # 8 jobs in chunks of 2: shard i of 3 takes chunks i, i + 3
+    options = dict(workers=1, batch=2, compile=False, progress=False, config=TINY)
+    one, sharded = tmp_path / "one", tmp_path / "sharded"
+    names = [p.relative_to(one) for p in generate_dataset(one, *sizes, **options)]
+    parts = {i: generate_dataset(sharded, *sizes, **options, shard=(i, 3)) for i in (2, 0, 1)}
+    assert sorted(p.relative_to(sharded) for part in parts.values() for p in part) == sorted(names)
+    assert not set(parts[0]) & set(parts[1]) and not set(parts[1]) & set(parts[2])  # disjoint
+    expected = ["traj_000000.pt", "traj_000001.pt", "traj_200000.pt", "traj_200001.pt"]
+    assert [p.name for p in parts[0]] == expected
+    for name in [*names, "dataset.json"]:
+        assert (one / name).read_bytes() == (sharded / name).read_bytes(), name
+    # rerunning a shard completes it, with the same bytes
+    (sharded / names[3]).unlink()
+    generate_dataset(sharded, *sizes, **options, shard=(1, 3))
+    assert (one / names[3]).read_bytes() == (sharded / names[3]).read_bytes()
+    with pytest.raises(ValueError, match="shard must be i/n"):
+        generate_dataset(tmp_path / "x", 1, 0, 0, config=TINY, shard=(3, 3))
+    with pytest.raises(SystemExit):
+        data_cli.main(["generate", "--out", str(tmp_path / "x"), "--shard", "1of2"])
+
+
+def test_check_summarises_a_dataset_and_names_its_problems(tmp_path, capsys):
+    options = dict(workers=1, batch=2, compile=False, progress=False, config=TINY)
+    paths = generate_dataset(tmp_path / "ds", 2, 1, 1, **options)
+    assert data_cli.main(["check", str(tmp_path / "ds")]) == 0
+    out = capsys.readouterr().out
+    assert "train       2       1" in out and "OK" in out
+    paths[1].write_bytes(b"truncated")  # a broken file ...
+    other = StampFormingConfig(ply_cells=5, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
+    generate_dataset(tmp_path / "other", 0, 0, 1, **{**options, "config": other})
+    extra = tmp_path / "ds" / "test" / "traj_999999.pt"  # ... and a test file of another mesh
+    extra.write_bytes((tmp_path / "other" / "test" / "traj_200000.pt").read_bytes())
+    assert data_cli.main(["check", str(tmp_path / "ds")]) == 1
+    captured = capsys.readouterr()
+    assert f"problem: {paths[1]}" in captured.err
+    assert "test: 2 different meshes (1 like traj_200000.pt; 1 like traj_999999.pt)" in captured.err
+    assert "2 problem(s)" in captured.out
+    assert data_cli.main(["check", str(tmp_path / "empty")]) == 1
+    assert "no trajectory files" in capsys.readouterr().err

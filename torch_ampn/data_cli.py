@@ -1,6 +1,8 @@
 """``torch-ampn-data``: make the default dataset with the embedded simulator, convert and export.
 
     torch-ampn-data generate --out data/default --num-train 32 --num-val 4 --num-test 4
+    torch-ampn-data generate --out data/paper --resolution paper --num-train 684 --shard 3/16  # job 3 of 16
+    torch-ampn-data check data/default
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
 
@@ -19,6 +21,29 @@ from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.dataset import generate_dataset
 
 
+def _shard(text: str) -> tuple[int, int]:
+    """``"I/N"`` -> ``(I, N)``."""
+    try:
+        index, count = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected I/N (e.g. 0/4), got {text!r}") from None
+    return index, count
+
+
+def _check(root: Path) -> int:
+    """Print the summary of :func:`~torch_ampn.data.check_dataset`; 1 if there are problems."""
+    from torch_ampn.data.dataset import check_dataset
+
+    rows, problems = check_dataset(root)
+    print(f"{'split':<6} {'files':>6} {'meshes':>7}  nodes  steps")
+    for r in rows:
+        print(f"{r['split']:<6} {r['files']:>6} {r['topologies']:>7}  {r['nodes']}  {r['steps']}")
+    for line in problems:
+        print(f"problem: {line}", file=sys.stderr)
+    print(f"{root}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
+    return 1 if problems else 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``torch-ampn-data``."""
     parser = argparse.ArgumentParser(prog="torch-ampn-data", description=__doc__.split("\n")[0])
@@ -32,6 +57,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     g.add_argument("--workers", type=int, default=None, help="processes (default: CPU cores)")
     g.add_argument("--batch", type=int, default=4, help="trajectories simulated together per process")
     g.add_argument("--no-compile", action="store_true", help="do not torch.compile the solver step")
+    g.add_argument(
+        "--shard", type=_shard, default=None, metavar="I/N", help="make only part I of N (0 <= I < N)"
+    )
+    k = sub.add_parser("check", help="load every trajectory of a dataset folder and summarise it")
+    k.add_argument("root", type=Path)
     c = sub.add_parser("convert", help="meshio time series (.xdmf or folder of .vtu) -> trajectory .pt")
     c.add_argument("input", type=Path)
     c.add_argument("--out", type=Path, required=True)
@@ -50,8 +80,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.workers,
                 args.batch,
                 compile=not args.no_compile,
+                **({"shard": args.shard} if args.shard else {}),
             )
             print(f"{len(paths)} trajectories in {args.out}")
+        elif args.command == "check":
+            return _check(args.root)
         elif args.command == "convert":
             from torch_ampn.data.meshio_io import read_time_series
 

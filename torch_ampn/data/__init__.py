@@ -1,6 +1,13 @@
 """Graph data: the AMG hierarchy, ``HierarchicalData`` and mesh builders."""
 
-from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, set_window, step_sample
+from torch_ampn.data.dataset import (
+    HierarchyCache,
+    StepDataset,
+    TrajectoryDataset,
+    check_dataset,
+    set_window,
+    step_sample,
+)
 from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
 from torch_ampn.data.hierarchy import build_hierarchy, mesh_operator
 from torch_ampn.data.mesh import (
@@ -33,6 +40,7 @@ __all__ = [
     "read_time_series",
     "rectangle_mesh",
     "stacked_plates",
+    "check_dataset",
     "set_window",
     "step_sample",
 ]

@@ -26,6 +26,42 @@ def split_files(root: str | os.PathLike, split: str) -> list[Path]:
     return sorted((Path(root) / split).glob("*.pt"))
 
 
+def check_dataset(root: str | os.PathLike) -> tuple[list[dict[str, object]], list[str]]:
+    """Load every trajectory of a dataset folder and summarise it per split.
+
+    Returns:
+        ``(rows, problems)``: one row per split with ``split``, ``files``, ``nodes``,
+        ``steps`` and ``topologies`` (distinct meshes, by :func:`topology_key`), and one line
+        per problem: a file that does not load (naming the file and the field), a dataset
+        without trajectories, a split with more than one mesh (one hierarchy per split is what
+        the training expects; the line lists the files of each mesh).
+    """
+    rows: list[dict[str, object]] = []
+    problems: list[str] = []
+    for split in SPLITS:
+        files = split_files(root, split)
+        meshes: dict[str, list[str]] = {}
+        nodes: set[int] = set()
+        steps: set[int] = set()
+        for path in files:
+            try:
+                traj = Trajectory.load(path)
+            except (OSError, ValueError) as err:  # TrajectoryFormatError is a ValueError
+                problems.append(" ".join(str(err).split()) if str(path) in str(err) else f"{path}: {err}")
+                continue
+            meshes.setdefault(topology_key(traj), []).append(path.name)
+            nodes.add(traj.num_nodes)
+            steps.add(traj.num_steps)
+        if len(meshes) > 1:
+            groups = "; ".join(f"{len(names)} like {names[0]}" for names in meshes.values())
+            problems.append(f"{Path(root) / split}: {len(meshes)} different meshes ({groups})")
+        summary = dict(nodes=sorted(nodes), steps=sorted(steps), topologies=len(meshes))
+        rows.append(dict(split=split, files=len(files), **summary))
+    if not any(row["files"] for row in rows):
+        problems.append(f"{root}: no trajectory files in train/, val/ or test/")
+    return rows, problems
+
+
 class TrajectoryDataset:
     """The trajectories of one split, loaded (and validated) on first access and kept in memory.
 

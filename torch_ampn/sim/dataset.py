@@ -35,17 +35,18 @@ def _is_valid(path: Path) -> bool:
     return True
 
 
-def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], str, bool]) -> list[str]:
-    """Worker: simulate a chunk of (split, seed) jobs together and save each trajectory."""
-    cfg_dict, jobs, root, compile_ = args
+def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], list[bool], str, bool]) -> list[str]:
+    """Worker: simulate a chunk of (split, seed) jobs together and save the trajectories asked for."""
+    cfg_dict, jobs, write, root, compile_ = args
     torch.set_num_threads(1)
     cfg = StampFormingConfig.from_dict(cfg_dict)
     trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_)
     out = []
-    for (split, seed), traj in zip(jobs, trajs, strict=True):
-        path = trajectory_path(Path(root), split, seed)
-        traj.save(path)
-        out.append(str(path))
+    for (split, seed), traj, wanted in zip(jobs, trajs, write, strict=True):
+        if wanted:
+            path = trajectory_path(Path(root), split, seed)
+            traj.save(path)
+            out.append(str(path))
     return out
 
 
@@ -60,8 +61,16 @@ def generate_dataset(
     compile: bool = True,
     progress: bool = True,
     config: StampFormingConfig | None = None,
+    shard: tuple[int, int] | None = None,
 ) -> list[Path]:
     """Simulate the missing trajectories of a dataset (existing valid files are kept).
+
+    The trajectories are simulated in fixed chunks of ``batch`` consecutive (split, seed)
+    jobs, the same for every run of the same split sizes, so that a trajectory is always
+    simulated in the same batch (with ``compile`` its last bits depend on the batch). With
+    ``shard=(i, n)`` only chunks ``i, i + n, i + 2n, ...`` are simulated: ``n`` jobs with
+    ``i = 0 .. n-1``, in any order, on any machines sharing the folder (or copied together
+    afterwards), make the same files as one job. Rerunning a job completes what it left.
 
     Args:
         out: Dataset folder.
@@ -74,9 +83,10 @@ def generate_dataset(
         compile: ``torch.compile`` the solver step.
         progress: Show a progress bar.
         config: Explicit simulator settings (overrides ``resolution``).
+        shard: ``(i, n)``: make only the ``i``-th of ``n`` disjoint parts (``0 <= i < n``).
 
     Returns:
-        The paths of all trajectories of the dataset.
+        The paths of the trajectories of the dataset (of the shard's part with ``shard``).
 
     Raises:
         ValueError: For an unknown ``resolution``, or a folder whose ``dataset.json`` holds
@@ -84,6 +94,9 @@ def generate_dataset(
     """
     if resolution not in ("coarse", "paper"):
         raise ValueError(f"resolution must be 'coarse' or 'paper', got {resolution!r}")
+    index, count = shard or (0, 1)
+    if not 0 <= index < count:
+        raise ValueError(f"shard must be i/n with 0 <= i < n, got {index}/{count}")
     cfg = config or (StampFormingConfig.paper() if resolution == "paper" else StampFormingConfig())
     out.mkdir(parents=True, exist_ok=True)
     spec_path = out / "dataset.json"
@@ -101,8 +114,13 @@ def generate_dataset(
         for split, count in (("train", num_train), ("val", num_val), ("test", num_test))
         for i in range(count)
     ]
-    todo = [(s, seed) for s, seed in wanted if not _is_valid(trajectory_path(out, s, seed))]
-    chunks = [todo[i : i + batch] for i in range(0, len(todo), batch)]
+    chunks = [wanted[i : i + batch] for i in range(0, len(wanted), batch)][index::count]
+    wanted = [job for chunk in chunks for job in chunk]
+    # a chunk with a missing trajectory is simulated whole (its batch is its batch); only the
+    # missing files are written
+    missing = {job for job in wanted if not _is_valid(trajectory_path(out, *job))}
+    chunks = [chunk for chunk in chunks if missing.intersection(chunk)]
+    todo = [job for job in wanted if job in missing]
     workers = max(1, min(workers or os.cpu_count() or 1, len(chunks) or 1))
     bar = None
     if progress:
@@ -110,7 +128,7 @@ def generate_dataset(
 
         bar = tqdm(total=len(todo), desc="generate", unit="traj")
         bar.write(f"{len(wanted) - len(todo)} of {len(wanted)} trajectories exist; simulating {len(todo)}")
-    jobs = [(cfg.to_dict(), chunk, str(out), compile) for chunk in chunks]
+    jobs = [(cfg.to_dict(), chunk, [job in missing for job in chunk], str(out), compile) for chunk in chunks]
     if workers == 1:
         results = map(_simulate_chunk, jobs)
         for done in results:
