@@ -17,7 +17,7 @@ from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import generate_dataset
-from torch_ampn.training.items import RolloutDataset, identity_collate
+from torch_ampn.training.items import EachOnceSampler, RolloutDataset, identity_collate
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 
 
@@ -254,7 +254,10 @@ class AMPNDataModule(L.LightningDataModule):
         )
 
     def _items(self, split: str) -> TorchDataLoader:
-        return TorchDataLoader(self._splits[split], batch_size=None, collate_fn=identity_collate)
+        dataset = self._splits[split]
+        return TorchDataLoader(
+            dataset, batch_size=None, sampler=EachOnceSampler(dataset), collate_fn=identity_collate
+        )
 
     def val_dataloader(self) -> TorchDataLoader:
         """Whole validation trajectories."""

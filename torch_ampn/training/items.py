@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+
+import torch.distributed as dist
+from torch.utils.data import DistributedSampler
 
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
@@ -57,3 +60,33 @@ class RolloutDataset:
 def identity_collate(item: RolloutItem) -> RolloutItem:
     """``collate_fn`` that passes an item through unchanged (picklable for worker processes)."""
     return item
+
+
+class EachOnceSampler(DistributedSampler):
+    """Items ``rank, rank + world_size, ...`` of a dataset: every item exactly once over all ranks.
+
+    PyTorch's ``DistributedSampler`` repeats items to give every rank as many; a rollout
+    metric must not count a trajectory twice. Without ``torch.distributed`` (one process)
+    it yields every item in order. Being a ``DistributedSampler``, Lightning keeps it.
+    """
+
+    def __init__(self, dataset: Sequence) -> None:
+        distributed = dist.is_available() and dist.is_initialized()
+        num_replicas = dist.get_world_size() if distributed else 1
+        rank = dist.get_rank() if distributed else 0
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(range(self.rank, len(self.dataset), self.num_replicas))
+
+    def __len__(self) -> int:
+        return len(range(self.rank, len(self.dataset), self.num_replicas))
+
+
+def gather_objects(value: object) -> list[object]:
+    """``value`` of every rank (a list of one without ``torch.distributed``)."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return [value]
+    out: list[object] = [None] * dist.get_world_size()
+    dist.all_gather_object(out, value)
+    return out

@@ -17,7 +17,7 @@ from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse
-from torch_ampn.training.items import RolloutItem
+from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
 from torch_ampn.training.schedule import WarmupExponentialDecay
 
@@ -362,12 +362,24 @@ class AMPNLightningModule(L.LightningModule):
         )
         return pred, time.perf_counter() - start
 
+    def on_validation_epoch_start(self) -> None:
+        """Start collecting the validation trajectories' RMSE."""
+        self._val_rmse: dict[str, float] = {}
+
     def validation_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
-        """Full rollout of one validation trajectory; logs ``val/rollout_rmse``."""
+        """Full rollout of one validation trajectory (its RMSE is logged at the epoch's end)."""
         pred, _ = self.rollout_item(item)
         rmse = rollout_rmse(pred, item.trajectory.pos, item.trajectory.ply_mask)[1:].mean()
-        self.log("val/rollout_rmse", rmse, prog_bar=True, batch_size=1, sync_dist=True)
+        self._val_rmse[item.name] = float(rmse)
         return rmse
+
+    def on_validation_epoch_end(self) -> None:
+        """Log ``val/rollout_rmse``: the mean over every validation trajectory of every rank, each once."""
+        merged: dict[str, float] = {}
+        for part in gather_objects(self._val_rmse):
+            merged.update(part)
+        if merged:
+            self.log("val/rollout_rmse", sum(merged.values()) / len(merged), prog_bar=True, batch_size=1)
 
     def on_test_epoch_start(self) -> None:
         """Start a new test report."""
@@ -386,14 +398,14 @@ class AMPNLightningModule(L.LightningModule):
             baselines[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
         assert self._report is not None
         self._report.add(item, pred, rmse, baselines, seconds, xdmf=self.hparams.export_xdmf)
-        value = rmse[1:].mean()
-        self.log("test/rollout_rmse", value, batch_size=1, sync_dist=True)
-        return value
+        return rmse[1:].mean()
 
     def on_test_epoch_end(self) -> None:
-        """Write the table, plots and summary; log the baseline comparison."""
+        """Write the table, plots and summary (rank 0, with every rank's trajectories); log the comparison."""
         assert self._report is not None
+        parts = gather_objects((self._report.rows, self._report.curves))
         if self.trainer.is_global_zero:
+            self._report.merge(parts)
             summary = self._report.finish()
             self.log_dict({f"test/{k}": float(v) for k, v in summary.items()}, rank_zero_only=True)
 

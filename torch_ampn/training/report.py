@@ -96,13 +96,24 @@ class TestReport:
             from torch_ampn.data.meshio_io import export_xdmf
 
             export_xdmf(item.trajectory, self.folder / "xdmf" / f"{item.name}.xdmf", predicted_pos=pred)
-        if len(self.rows) == 1:
+        if item.index == 0:
             plot_final_shapes(
                 self.folder / f"final_shape_{item.name}.png",
                 item.trajectory,
                 pred,
                 f"{item.name}: rollout RMSE {row['model']:.3f} mm (averaged over steps)",
             )
+
+    def merge(self, parts: list[tuple[list[dict], dict[str, list[Tensor]]]]) -> None:
+        """Take the ``(rows, curves)`` of every rank (this one's included): each trajectory once, by name."""
+        found: dict[str, tuple[dict, dict[str, Tensor]]] = {}
+        for rows, curves in parts:
+            for i, row in enumerate(rows):
+                found.setdefault(row["trajectory"], (row, {name: c[i] for name, c in curves.items()}))
+        names = sorted(found)
+        self.rows = [found[n][0] for n in names]
+        kinds = list(found[names[0]][1]) if names else []
+        self.curves = {kind: [found[n][1][kind] for n in names] for kind in kinds}
 
     def summary(self) -> dict[str, float]:
         """Means over trajectories: model, static, best rigid and best baseline RMSE, and the ratio."""
