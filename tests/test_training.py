@@ -735,3 +735,14 @@ def test_bad_checkpoints_and_input_errors_end_in_one_line(data_dir, tmp_path):
     last = done.stderr.strip().splitlines()[-1]
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-2000:]
     assert last.startswith("torch-ampn: error: ") and f"{bad}: not valid JSON" in last
+
+
+def test_an_output_folder_that_cannot_be_written_stops_fit_before_training(data_dir, tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("a file where the folder should be")
+    module = AMPNLightningModule(**SMALL_MODEL, output_dir=str(blocked / "reports"))
+    trainer = _quiet_trainer(max_steps=2)
+    message = f"{blocked / 'reports'}: cannot write there \\(model.output_dir\\)"
+    with pytest.raises(PermissionError, match=message):
+        trainer.fit(module, datamodule=_datamodule(data_dir))
+    assert trainer.global_step == 0 and not module.surrogate.statistics_frozen  # before any work

@@ -124,7 +124,7 @@ def entry_point() -> None:
 
     try:
         main()
-    except (ValueError, FileNotFoundError, TrajectoryFormatError) as err:
+    except (ValueError, FileNotFoundError, PermissionError, TrajectoryFormatError) as err:
         if os.environ.get("AMPN_TRACEBACK"):
             raise
         sys.exit(f"torch-ampn: error: {' '.join(str(err).split())}")

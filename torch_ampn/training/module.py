@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,18 @@ from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
 from torch_ampn.training.schedule import WarmupExponentialDecay
+
+
+def _check_writable(folder: Path, name: str) -> None:
+    """Raise ``PermissionError`` naming ``folder`` and the setting unless files can be written there."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise PermissionError(f"{folder}: cannot write there ({name}): {err.strerror or err}") from None
+
 
 # The module's arguments that build its AMPNSurrogate (and, through it, the AMPN); the rest are
 # training, rollout and output options.
@@ -179,8 +192,14 @@ class AMPNLightningModule(L.LightningModule):
 
     # ---- set-up --------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
-        """Check the data against the model; before fitting, accumulate the normalisation statistics."""
+        """Check the data and the output folders; before fitting, accumulate the normalisation statistics."""
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if self._trainer is not None:
+            folders = [("model.output_dir", self.hparams.output_dir)]
+            folders += [("checkpoint dirpath", getattr(c, "dirpath", None)) for c in self.trainer.callbacks]
+            for name, folder in folders:
+                if folder:
+                    _check_writable(Path(folder), name)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
         if stage == "fit" and not self.surrogate.statistics_frozen:
