@@ -163,3 +163,23 @@ def test_contact_edges_from_the_initial_state_serve_every_step(small_runs, hiera
     rollout(lambda d: current.append(d.contact(0).edge_index.clone()) or torch.full_like(d["l0"].pos, 0.7),
             traj, hierarchy, ComponentRadiusGraph(12.0, 1))  # fmt: skip
     assert not all(torch.equal(e, current[0]) for e in current)
+
+
+def test_a_one_step_trajectory_without_any_contact_edge_rolls_out(small_sim):
+    """Cases that must work: no contact edge anywhere (components apart), a single saved step."""
+    import dataclasses
+
+    from torch_ampn.sim import simulate
+
+    traj = simulate(dataclasses.replace(small_sim, num_steps=1), seed=3)
+    hierarchy = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)(traj)
+    surrogate = AMPNSurrogate(hidden_channels=8, mlp_channels=8, num_levels=2, contact_radius=1e-6, contact_k=1)
+    window = surrogate.contact(step_sample(traj, 1, hierarchy))
+    assert all(window.contact(k).edge_index.size(1) == 0 for k in range(2))
+    surrogate.accumulate_statistics(window)
+    surrogate.freeze_statistics()
+    pred = rollout(lambda d: surrogate.predict_residual(d, torch.Generator().manual_seed(0)), traj, hierarchy,
+                   surrogate.contact)  # fmt: skip
+    assert pred.shape == traj.pos.shape and torch.isfinite(pred).all()
+    tools = ~traj.ply_mask
+    assert torch.equal(pred[:, tools], traj.pos[:, tools])
