@@ -173,7 +173,8 @@ def test_a_one_step_trajectory_without_any_contact_edge_rolls_out(small_sim):
 
     traj = simulate(dataclasses.replace(small_sim, num_steps=1), seed=3)
     hierarchy = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)(traj)
-    surrogate = AMPNSurrogate(hidden_channels=8, mlp_channels=8, num_levels=2, contact_radius=1e-6, contact_k=1)
+    sizes = dict(hidden_channels=8, mlp_channels=8, num_levels=2)
+    surrogate = AMPNSurrogate(**sizes, contact_radius=1e-6, contact_k=1)
     window = surrogate.contact(step_sample(traj, 1, hierarchy))
     assert all(window.contact(k).edge_index.size(1) == 0 for k in range(2))
     surrogate.accumulate_statistics(window)
