@@ -113,3 +113,24 @@ def test_cached_samples_are_built_once_and_equal_fresh_ones(root):
     i = int(batch.traj_index) * 4 + int(batch.step) - 1
     batch["l0"].pos = batch["l0"].pos + 1.0
     assert torch.equal(cached[i]["l0"].pos, fresh[i]["l0"].pos)
+
+
+def test_trajectory_memory_is_capped_least_recently_used_first(root, monkeypatch):
+    from torch_ampn.data import Trajectory
+    from torch_ampn.data.dataset import _tensor_bytes
+
+    loads = []
+    real = Trajectory.load
+    monkeypatch.setattr(Trajectory, "load", staticmethod(lambda path: loads.append(path.name) or real(path)))
+    one = _tensor_bytes(real(TrajectoryDataset(root, "train").files[0]))
+    capped = TrajectoryDataset(root, "train", max_cached_mb=2.5 * one / 1e6)  # room for two
+    for i in (0, 1, 0, 2, 1, 0):
+        assert torch.equal(capped[i].pos, real(capped.files[i]).pos)
+    names = [f.name for f in capped.files]  # (the reference loads above call the real load directly)
+    # 0, 1 loaded; 0 cached; 2 loaded (drops 1, the least recently used); 1 loaded (drops 0); 0 loaded
+    assert loads == [names[i] for i in (0, 1, 2, 1, 0)]
+    assert list(capped._cache) == [1, 0] and capped._cached_bytes == 2 * one
+    unlimited = TrajectoryDataset(root, "train", max_cached_mb=None)
+    for i in (0, 1, 2, 0):
+        unlimited[i]
+    assert len(unlimited._cache) == 3

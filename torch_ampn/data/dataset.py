@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
+from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -65,31 +66,52 @@ def check_dataset(root: str | os.PathLike) -> tuple[list[dict[str, object]], lis
 class TrajectoryDataset:
     """The trajectories of one split, loaded (and validated) on first access and kept in memory.
 
+    At most ``max_cached_mb`` of trajectories are kept (the least recently used go first), so
+    a large dataset (the paper's 684 training trajectories at its resolution are about 7 GB)
+    is read from disk as needed instead of filling the memory.
+
     Args:
         root: Dataset folder with ``train/``, ``val/``, ``test/`` sub-folders.
         split: ``"train"``, ``"val"`` or ``"test"``.
+        max_cached_mb: Memory for loaded trajectories in MB (their tensors); ``None``: no limit.
     """
 
-    def __init__(self, root: str | os.PathLike, split: str) -> None:
+    def __init__(self, root: str | os.PathLike, split: str, max_cached_mb: float | None = 2048.0) -> None:
         self.root, self.split = Path(root), split
         self.files = split_files(root, split)
         if not self.files:
             raise FileNotFoundError(f"{self.root / split}: no trajectory files (*.pt)")
-        self._cache: dict[int, Trajectory] = {}
+        self.max_cached_bytes = None if max_cached_mb is None else max_cached_mb * 1e6
+        self._cache: OrderedDict[int, Trajectory] = OrderedDict()
+        self._cached_bytes = 0
 
     def __len__(self) -> int:
         return len(self.files)
 
     def __getitem__(self, i: int) -> Trajectory:
-        if i not in self._cache:
-            self._cache[i] = Trajectory.load(self.files[i])
-        return self._cache[i]
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        traj = Trajectory.load(self.files[i])
+        self._cache[i] = traj
+        self._cached_bytes += _tensor_bytes(traj)
+        limit = self.max_cached_bytes
+        while limit is not None and self._cached_bytes > limit and len(self._cache) > 1:
+            _, dropped = self._cache.popitem(last=False)
+            self._cached_bytes -= _tensor_bytes(dropped)
+        return traj
 
     def __iter__(self) -> Iterator[Trajectory]:
         return (self[i] for i in range(len(self)))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.root}, split={self.split!r}, trajectories={len(self)})"
+
+
+def _tensor_bytes(traj: Trajectory) -> int:
+    """Bytes of a trajectory's tensors."""
+    tensors = [v for v in vars(traj).values() if torch.is_tensor(v)] + list(traj.cells)
+    return sum(t.numel() * t.element_size() for t in tensors)
 
 
 def topology_key(traj: Trajectory) -> str:
@@ -220,6 +242,7 @@ class StepDataset(torch.utils.data.Dataset):
             the whole split, about 60 kB per window of the coarse default mesh. The samples
             handed out are the cached objects: replace their tensors rather than writing into
             them (a batched sample is a new object anyway).
+        max_cached_mb: Memory for loaded trajectories (see :class:`TrajectoryDataset`).
     """
 
     def __init__(
@@ -231,11 +254,12 @@ class StepDataset(torch.utils.data.Dataset):
         min_coarse_nodes: int = 16,
         transform: Callable[[HierarchicalData], HierarchicalData] | None = None,
         cache_samples: bool = False,
+        max_cached_mb: float | None = 2048.0,
     ) -> None:
         self.transform = transform
         self.cache_samples = cache_samples
         self._samples: dict[int, HierarchicalData] = {}
-        self.trajectories = TrajectoryDataset(root, split)
+        self.trajectories = TrajectoryDataset(root, split, max_cached_mb=max_cached_mb)
         cache = Path(root) / "cache" if cache_dir == "default" else cache_dir
         self.hierarchies = HierarchyCache(cache, max_levels=max_levels, min_coarse_nodes=min_coarse_nodes)
         self.steps = [self.trajectories[i].num_steps for i in range(len(self.trajectories))]
