@@ -395,8 +395,9 @@ def simulate_batch(
     """Simulate one process per seed, all at once, and return their trajectories.
 
     Gripper positions and forces are sampled from each seed (uniform along the free edges
-    and in ``gripper_force_range``). The same config and seed give the same trajectory
-    whatever the batch it is simulated in.
+    and in ``gripper_force_range``). Eager, the same config and seed give the same trajectory
+    whatever the batch it is simulated in; with ``compile`` the last bits depend on the batch,
+    and the chaotic forming amplifies them (see ``docs/simulator.md``).
 
     Args:
         config: Settings; the coarse default when ``None``.
