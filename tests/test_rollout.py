@@ -184,3 +184,29 @@ def test_a_one_step_trajectory_without_any_contact_edge_rolls_out(small_sim):
     assert pred.shape == traj.pos.shape and torch.isfinite(pred).all()
     tools = ~traj.ply_mask
     assert torch.equal(pred[:, tools], traj.pos[:, tools])
+
+
+def test_a_mesh_with_a_single_component_trains_and_predicts():
+    """Cases that must work: one component (a single ply, no tools): no contact edges, finite outputs."""
+    from torch_ampn.data import NodeType
+    from torch_ampn.testing import toy_hierarchy
+
+    data = toy_hierarchy(nx=6, ny=5, num_components=1, max_levels=2, min_coarse_nodes=4)
+    fine = data["l0"]
+    fine.node_type = torch.full_like(fine.node_type, int(NodeType.PLY))
+    fine.bc_disp = torch.zeros_like(fine.bc_disp)
+    fine.ply_mask = torch.ones(fine.num_nodes, dtype=torch.bool)
+    fine.target = 0.01 * torch.randn(fine.num_nodes, 3, generator=torch.Generator().manual_seed(1))
+    for k in range(data.num_levels):
+        data.level(k).node_type = fine.node_type[data.fine_index(k)]
+        data.level(k).component = fine.component[data.fine_index(k)]
+    sizes = dict(hidden_channels=8, mlp_channels=8, num_levels=2)
+    surrogate = AMPNSurrogate(num_components=1, **sizes, contact_radius=0.6)
+    data = surrogate.contact(data)
+    assert all(data.contact(k).edge_index.size(1) == 0 for k in range(2))
+    surrogate.accumulate_statistics(data)
+    surrogate.freeze_statistics()
+    loss = surrogate.loss(data, generator=torch.Generator().manual_seed(0))
+    loss.backward()
+    residual = surrogate.predict_residual(data, torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss) and residual.shape == (fine.num_nodes, 3) and torch.isfinite(residual).all()

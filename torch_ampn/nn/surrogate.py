@@ -90,8 +90,8 @@ class AMPNSurrogate(nn.Module):
             raise ValueError(f"coarse_loss_weight must be >= 0, got {coarse_loss_weight}")
         if coarse_loss_weight > 0 and huber_delta is not None:
             raise ValueError("coarse_loss_weight > 0 needs the plain squared error (huber_delta=None)")
-        if num_components < 2:
-            raise ValueError(f"num_components must be >= 2 (plies and tools), got {num_components}")
+        if num_components < 1:
+            raise ValueError(f"num_components must be >= 1, got {num_components}")
         if diffusion_steps < 1:
             raise ValueError(f"diffusion_steps must be >= 1, got {diffusion_steps}")
         self.num_components = num_components
