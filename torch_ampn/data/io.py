@@ -1,9 +1,10 @@
-"""File helpers: atomic writes, so that no half-written file is ever left behind."""
+"""File helpers: atomic writes (no half-written file is ever left behind) and checked reads."""
 
 from __future__ import annotations
 
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import torch
@@ -26,3 +27,19 @@ def atomic_torch_save(obj: object, path: str | os.PathLike) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def load_torch_file(path: str | os.PathLike, kind: str) -> object:
+    """``torch.load(path, weights_only=True)`` on the CPU; ``ValueError`` with one readable line if it fails.
+
+    Args:
+        path: The file.
+        kind: What the file should be, for the message (e.g. ``"trajectory file"``).
+    """
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; a cut one has no directory
+        raise ValueError(f"{path}: not a readable {kind} (truncated, or not written by torch.save)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - corrupt members, objects weights-only loading refuses
+        reason = " ".join(str(err).split())[:160]
+        raise ValueError(f"{path}: not a readable {kind} ({type(err).__name__}: {reason})") from None

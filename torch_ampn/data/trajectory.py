@@ -37,7 +37,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torch_ampn.data.io import atomic_torch_save
+from torch_ampn.data.io import atomic_torch_save, load_torch_file
 from torch_ampn.data.node_type import NodeType
 
 FORMAT_NAME = "torch-ampn-trajectory"
@@ -166,9 +166,9 @@ class Trajectory:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such trajectory file")
         try:
-            d = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as err:
-            raise TrajectoryFormatError(f"{path}: not a readable trajectory file ({err})") from err
+            d = load_torch_file(path, "trajectory file")
+        except ValueError as err:
+            raise TrajectoryFormatError(str(err)) from None
         return cls.from_dict(d, str(path))
 
     # ---- validation ------------------------------------------------------------------

@@ -45,15 +45,14 @@ def _same(a: Any, b: Any) -> bool:
 
 def _check_checkpoint(subcommand: str, path: str) -> None:
     """Exit with a one-line message unless ``path`` is a readable torch-ampn checkpoint."""
-    import torch
+    from torch_ampn.data.io import load_torch_file
 
     if not Path(path).is_file():
         sys.exit(f"torch-ampn {subcommand}: {path}: no such checkpoint file")
     try:
-        ckpt = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as err:  # noqa: BLE001 - truncated, not a zip/pickle, unsafe objects, ...
-        reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
-        sys.exit(f"torch-ampn {subcommand}: {path}: not a readable checkpoint ({reason})")
+        ckpt = load_torch_file(path, "checkpoint")
+    except ValueError as err:
+        sys.exit(f"torch-ampn {subcommand}: {err}")
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         sys.exit(f"torch-ampn {subcommand}: {path}: not a Lightning checkpoint (no field 'state_dict')")
     hparams = ckpt.get("hyper_parameters") or {}
