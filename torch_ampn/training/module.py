@@ -202,18 +202,31 @@ class AMPNLightningModule(L.LightningModule):
                     _check_writable(Path(folder), name)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
-        if stage == "fit" and not self.surrogate.statistics_frozen:
+        resuming = self._trainer is not None and self.trainer.ckpt_path is not None  # statistics come with it
+        if stage == "fit" and not self.surrogate.statistics_frozen and not resuming:
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
             self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
 
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Rebuild the surrogate for checkpoints written before ``mlp_channels`` existed.
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Store the random number generators' states, so that a resumed fit draws what it would have."""
+        checkpoint["rng_states"] = {"torch": torch.get_rng_state()}
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
-        Their layer MLPs were ``hidden_channels`` wide (the default then); Lightning calls this
-        hook after building the module from the checkpoint's hyper-parameters and before loading
-        its weights, so the surrogate is rebuilt with that width here.
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Restore the generators' states; rebuild the surrogate of checkpoints from before ``mlp_channels``.
+
+        Those checkpoints' layer MLPs were ``hidden_channels`` wide (the default then); Lightning
+        calls this hook after building the module from the checkpoint's hyper-parameters and
+        before loading its weights, so the surrogate is rebuilt with that width here.
         """
+        states = checkpoint.get("rng_states", {})
+        if "torch" in states:
+            torch.set_rng_state(states["torch"])
+        cuda = torch.cuda.is_available() and len(states.get("cuda", ())) == torch.cuda.device_count()
+        if "cuda" in states and cuda:
+            torch.cuda.set_rng_state_all(states["cuda"])
         saved = checkpoint.get("hyper_parameters", {})
         if "mlp_channels" in saved or self.hparams.mlp_channels == self.hparams.hidden_channels:
             return
