@@ -202,8 +202,7 @@ class AMPNLightningModule(L.LightningModule):
                     _check_writable(Path(folder), name)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
-        resuming = self._trainer is not None and self.trainer.ckpt_path is not None  # statistics come with it
-        if stage == "fit" and not self.surrogate.statistics_frozen and not resuming:
+        if stage == "fit" and not self.surrogate.statistics_frozen:
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
             self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
