@@ -573,12 +573,18 @@ def main(argv: list[str] | None = None) -> int:
             f"{simulator['rmse_vs_dataset']['batched']:.3f} mm",
             flush=True,
         )
+    failed: list[str] = []
     for i, (variant, seed) in enumerate(todo, 1):
         print(
             f"[{i}/{len(todo)}] {variant} seed {seed}: fit ({args.steps} steps), test, measure ...",
             flush=True,
         )
-        cell = run_cell(variant, seed, base, args, simulator)
+        try:
+            cell = run_cell(variant, seed, base, args, simulator)
+        except RuntimeError as err:  # a failed fit or test: the other cells still run
+            failed.append(f"{variant}_seed{seed}")
+            print(f"[{i}/{len(todo)}] {variant} seed {seed}: FAILED, no result written ({err})", flush=True)
+            continue
         print(
             f"[{i}/{len(todo)}] {variant} seed {seed}: RMSE {cell['rmse']:.3f} mm, rollout "
             f"{cell['rollout_seconds']:.2f} s, {cell['speedup']:.1f}x the simulator, "
@@ -586,7 +592,9 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     report(args, base)
-    return 0
+    if failed:
+        print(f"{len(failed)} cell(s) failed: {', '.join(failed)}; their logs are in {args.workdir}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -112,6 +112,14 @@ def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys):
     assert compare.main([*args, "--variants", "ampn", "robin5", "--no-figures"]) == 0
     assert "2 cells done before, skipped" in capsys.readouterr().out
     assert {v: (root / "work" / f"{v}_seed0" / "log.txt").stat().st_mtime for v in cells} == logs
+    # a cell that fails leaves no result, and the run goes on with the next one
+    capsys.readouterr()
+    broken = [*args, "--variants", "radius", "ampn", "--no-figures", "--set", "model.contact_mode", "none"]
+    assert compare.main(broken) == 1
+    printed = capsys.readouterr().out
+    assert "radius seed 0: FAILED, no result written" in printed
+    assert "1 cell(s) failed: radius_seed0" in printed
+    assert not (results / "radius_seed0.json").exists()
     # the report marks a variant without cells as missing
     assert compare.main([*args, "--variants", "ampn", "flat", "--report", "--no-figures"]) == 0
     assert "| flat MeshGraphNet (1 level) | missing |" in (results / "table.md").read_text()
