@@ -429,9 +429,12 @@ def figures(
             ax.plot(torch.stack(curves).mean(0), label=VARIANTS[variant].label, lw=1.6)
     any_cell = next(iter(cells.values()), None)
     if any_cell is not None:
-        for name, curve in any_cell["rmse_over_time"].items():
-            if name == "static" or name.startswith("rigid_r3"):
-                ax.plot(curve, ls="--", color="grey", lw=1, label=f"baseline: {name}")
+        curves = any_cell["rmse_over_time"]
+        rigid = [name for name in curves if name.startswith("rigid_r")]
+        best = min(rigid, key=lambda name: sum(curves[name][1:])) if rigid else None  # as the table's
+        for name, style in (("static", ":"), (best, "--")):
+            if name is not None:
+                ax.plot(curves[name], ls=style, color="grey", lw=1, label=f"baseline: {name}")
     ax.set(
         xlabel="step",
         ylabel="RMSE over ply nodes [mm]",
