@@ -10,4 +10,5 @@ echo "[test] ruff check"
 ruff check .
 echo "[test] pytest"
 export MPLBACKEND=Agg
-python -m pytest --nbmake tests examples/notebooks "$@"
+# notebook cells get 15 minutes (nbmake: 5): a loaded 2-core machine can slow them far beyond their ~10 s
+python -m pytest --nbmake --nbmake-timeout=900 tests examples/notebooks "$@"
