@@ -296,6 +296,11 @@ def run_cell(
     }
     args.results.mkdir(parents=True, exist_ok=True)
     _atomic_write(args.results / f"{variant}_seed{seed}.states.pt", lambda p: torch.save(states, p))
+    # the fitted weights without optimizer state (small), for later side-by-side timings
+    checkpoint = torch.load(cell_dir / "checkpoints" / "best.ckpt", map_location="cpu", weights_only=False)
+    for key in ("optimizer_states", "lr_schedulers"):
+        checkpoint.pop(key, None)
+    _atomic_write(args.results / f"{variant}_seed{seed}.ckpt", lambda p: torch.save(checkpoint, p))
     _atomic_write(
         args.results / f"{variant}_seed{seed}.json", lambda p: p.write_text(json.dumps(result, indent=1))
     )
