@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up (or update) the project's virtual environment in .venv with the pinned versions
 # from constraints/ci.txt. Idempotent: a second run only checks. Used by test.sh and
-# quickstart.sh; source-able so that the venv stays active in the caller.
+# quickstart.sh; source-able so that the venv stays active in the caller. On a GPU machine it
+# installs PyPI's CUDA build of torch; AMPN_CPU_ONLY=1 (CI) refuses any nvidia-* package.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 python_bin="${PYTHON:-python3}"
@@ -40,12 +41,15 @@ if ! installed_ok; then
     printf '%s\n%s\n' "$want" "$extras" > "$stamp"
 fi
 
-# CPU-only guard: the CI machine has no GPU, and a CUDA torch build means the pin failed.
-if python -m pip list --disable-pip-version-check 2>/dev/null | grep -i '^nvidia-'; then
-    echo "[install] ERROR: nvidia-* packages were installed (a CUDA torch build slipped in);" \
-         "check constraints/ci.txt" >&2
+# CPU-only guard, on request (AMPN_CPU_ONLY=1, set by .ci/run): the CI machine has no GPU,
+# and a CUDA torch build there means the pin failed. Without it, a CUDA build is fine (GPU machines).
+if [ "${AMPN_CPU_ONLY:-0}" = 1 ] \
+    && python -m pip list --disable-pip-version-check 2>/dev/null | grep -i '^nvidia-'; then
+    echo "[install] ERROR: AMPN_CPU_ONLY=1 but nvidia-* packages were installed" \
+         "(a CUDA torch build slipped in); check constraints/ci.txt" >&2
     exit 1
 fi
+# 2.13.0, 2.13.0+cpu and 2.13.0+cu128 all pass
 python - <<'PY'
 import torch
 assert torch.__version__.startswith("2.13.0"), f"unexpected torch {torch.__version__}"

@@ -26,8 +26,14 @@ from torch_ampn.training import (  # noqa: E402
 from torch_ampn.training.cli import main  # noqa: E402
 
 SMALL_MODEL = dict(
-    hidden_channels=16, mlp_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
-    post_layers=1, up_layers=1,
+    hidden_channels=16,
+    mlp_channels=16,
+    num_levels=2,
+    pre_layers=1,
+    down_layers=1,
+    solve_layers=1,
+    post_layers=1,
+    up_layers=1,
 )
 
 

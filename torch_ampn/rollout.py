@@ -14,6 +14,7 @@ The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -36,6 +37,10 @@ def rollout(
     num_steps: int | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
+    *,
+    fast: bool = False,
+    generator: torch.Generator | None = None,
+    compile: bool = True,
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state.
 
@@ -51,6 +56,13 @@ def rollout(
         num_steps: Steps to roll out (default: all ``T``).
         device: Where to run (default: the hierarchy's device).
         progress: Show a progress bar.
+        fast: Use the static-shape path (:class:`~torch_ampn.fast_rollout.FastRollout`):
+            ``predictor`` must then be an :class:`~torch_ampn.nn.AMPNSurrogate` (its own contact
+            settings are used; ``contact`` is ignored) and the noise comes from ``generator``.
+            Same result up to floating-point summation order. Where the surrogate's settings
+            have no fast path (plain-radius contact) it warns and takes the plain path.
+        generator: Noise generator of the fast path (the plain path's predictor brings its own).
+        compile: Compile the fast path (``torch.compile``; it warns and runs eagerly where that fails).
 
     Returns:
         Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
@@ -58,6 +70,25 @@ def rollout(
     steps = traj.num_steps if num_steps is None else num_steps
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
+    if fast:
+        from torch_ampn.fast_rollout import cached_fast_rollout, fast_path_supported
+        from torch_ampn.nn.surrogate import AMPNSurrogate
+
+        if not isinstance(predictor, AMPNSurrogate):
+            raise TypeError(
+                f"rollout(fast=True) needs an AMPNSurrogate as predictor, got {type(predictor).__name__}"
+            )
+        reason = fast_path_supported(predictor)
+        if reason is None:
+            runner = cached_fast_rollout(predictor, hierarchy, batch_size=1, compile=compile, device=device)
+            return runner([traj], [generator], num_steps=steps, progress=progress)[0]
+        warnings.warn(f"no fast rollout ({reason}); taking the plain path", RuntimeWarning, stacklevel=2)
+        surrogate = predictor
+        contact = surrogate.contact
+
+        def predictor(data: HierarchicalData) -> Tensor:
+            return surrogate.predict_residual(data, generator)
+
     if device is None:
         device = hierarchy.mesh(0).edge_index.device
     device = torch.device(device)

@@ -188,6 +188,7 @@ class AMPN(nn.Module):
         step: Tensor | None = None,
         batch_dict: dict[str, Tensor] | None = None,
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+        slots_dict: dict[EdgeType, Tensor] | None = None,
     ) -> Tensor:
         """Predict the (normalised) residual of the ``l0`` nodes.
 
@@ -212,6 +213,9 @@ class AMPN(nn.Module):
                 per-graph ``step``.
             contact_mask_dict: Optional ``{("lk", "contact", "lk"): BoolTensor[M_k]}``
                 validity masks of fixed-size contact tables (see :class:`IntraLevelConv`).
+            slots_dict: Optional :func:`~torch_ampn.nn._conv.incoming_slots` tables of any edge
+                sets (keys as ``edge_index_dict``): those aggregate by a dense reduction
+                (same result; what :class:`~torch_ampn.fast_rollout.FastRollout` passes).
 
         Returns:
             ``[N_0, out_channels]``.
@@ -243,6 +247,7 @@ class AMPN(nn.Module):
             parts += self._conditioning(k, x.size(0), step_code, batch_dict.get(lk), x)
             h.append(self.node_encoders["fine" if k == 0 else "coarse"](torch.cat(parts, dim=-1)))
 
+        slots_dict = slots_dict or {}
         mesh_index, mesh_e, contact_index, contact_e, contact_mask = [], [], [], [], []
         for k in range(num_levels):
             key = edge_type(MESH, k)
@@ -267,21 +272,24 @@ class AMPN(nn.Module):
         def intra_stack(stack: nn.ModuleList, k: int) -> None:
             for conv in stack:
                 h[k], mesh_e[k], contact_e[k] = conv(
-                    h[k], mesh_index[k], mesh_e[k], contact_index[k], contact_e[k], contact_mask[k]
-                )
+                    h[k], mesh_index[k], mesh_e[k], contact_index[k], contact_e[k], contact_mask[k],
+                    slots_dict.get(edge_type(MESH, k)), slots_dict.get(edge_type(CONTACT, k)),
+                )  # fmt: skip
 
         # ---- V-cycle -----------------------------------------------------------------
         for k in range(num_levels - 1):
             intra_stack(self.pre, k)
             for conv in self.down:
-                h[k + 1], down_e[k] = conv((h[k], h[k + 1]), down_index[k], down_e[k])
+                h[k + 1], down_e[k] = conv(
+                    (h[k], h[k + 1]), down_index[k], down_e[k], slots_dict.get(edge_type(DOWN, k))
+                )
         coarsest = num_levels - 1
         intra_stack(self.pre, coarsest)
         intra_stack(self.solve, coarsest)
         intra_stack(self.post, coarsest)
         for k in range(num_levels - 2, -1, -1):
             for conv in self.up:
-                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k])
+                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k], slots_dict.get(edge_type(UP, k)))
             intra_stack(self.post, k)
 
         return self.decoder(h[0])

@@ -31,6 +31,7 @@ sampling is one forward pass. The step index the network sees is 0-based (``k - 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -225,6 +226,8 @@ class DiffusionAMPN(nn.Module):
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
         generator: torch.Generator | None = None,
         noise: Tensor | None = None,
+        network: nn.Module | None = None,
+        draw: Callable[[], Tensor] | None = None,
     ) -> Tensor:
         r"""``K``-step ancestral sampling of the normalised residual, ``[N_0, C]``.
 
@@ -238,6 +241,9 @@ class DiffusionAMPN(nn.Module):
             contact_mask_dict: See :meth:`AMPN.forward`.
             generator: Random generator for the initial noise and the posterior noise.
             noise: Initial :math:`x_K` ``[N_0, C]`` (drawn from ``generator`` if ``None``).
+            network: Runs in place of the AMPN (e.g. its ``torch.compile`` wrapper).
+            draw: Returns the next ``[N_0, C]`` standard normal sample, in place of
+                ``torch.randn(..., generator=generator)`` (the initial noise, then one per step).
 
         Returns:
             :math:`\hat x_0`, ``[N_0, C]``.
@@ -245,11 +251,17 @@ class DiffusionAMPN(nn.Module):
         x0_feat = x_dict["l0"]
         shape = (x0_feat.size(0), self.model.out_channels)
         dtype, device = x0_feat.dtype, x0_feat.device
-        x = torch.randn(shape, generator=generator, dtype=dtype, device=device) if noise is None else noise
+        if draw is None:
+
+            def draw() -> Tensor:
+                return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+
+        model = self.model if network is None else network
+        x = draw() if noise is None else noise
         betas, alphas_bar = self.betas.tolist(), self.alphas_bar.tolist()
         for k in range(self.num_steps - 1, -1, -1):
             step = torch.tensor(k, device=device)
-            v_hat = self.model(
+            v_hat = model(
                 x_dict,
                 edge_index_dict,
                 edge_attr_dict,
@@ -265,7 +277,7 @@ class DiffusionAMPN(nn.Module):
             coef_x0 = ab_prev**0.5 * beta / (1.0 - ab)
             coef_xk = (1.0 - beta) ** 0.5 * (1.0 - ab_prev) / (1.0 - ab)
             var = beta * (1.0 - ab_prev) / (1.0 - ab)
-            z = torch.randn(shape, generator=generator, dtype=dtype, device=device)
+            z = draw()
             x = coef_x0 * x0_hat + coef_xk * x + var**0.5 * z
         raise AssertionError("unreachable")  # pragma: no cover
 

@@ -54,7 +54,7 @@ class InterLevelConv(EmbeddingConv):
         self.reset_parameters()
 
     def forward(
-        self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor
+        self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor, slots: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Run one layer of eq. (2).
 
@@ -62,6 +62,8 @@ class InterLevelConv(EmbeddingConv):
             x: ``(x_src [N_s, d], x_dst [N_t, d])``: sender and receiver embeddings.
             edge_index: ``[2, E]``, rows ``(source j in x_src, target i in x_dst)``.
             edge_attr: Edge embeddings ``[E, d]``.
+            slots: Optional :func:`~torch_ampn.nn._conv.incoming_slots` of ``edge_index``
+                (aggregation by a dense reduction; same result).
 
         Returns:
             ``(x_dst, edge_attr)``: new receiver embeddings ``[N_t, d]`` and edge embeddings ``[E, d]``.
@@ -71,6 +73,6 @@ class InterLevelConv(EmbeddingConv):
         edge_attr = self.lin_edge(edge_attr) + self.mlp_edge.forward_edges(
             x_dst, x_src, edge_attr, edge_index
         )  # [E, d]
-        agg = self.propagate(edge_index, edge_attr=edge_attr, size=size)  # [N_t, d]
+        agg = self.aggregate_edges(edge_index, edge_attr, size, slots)  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr

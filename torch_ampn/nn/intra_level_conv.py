@@ -70,6 +70,8 @@ class IntraLevelConv(EmbeddingConv):
         contact_index: Tensor,
         e_contact: Tensor,
         contact_mask: OptTensor = None,
+        mesh_slots: OptTensor = None,
+        contact_slots: OptTensor = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Run one layer of eq. (1).
 
@@ -83,6 +85,10 @@ class IntraLevelConv(EmbeddingConv):
                 fixed-size contact table. Such edges do not contribute to the aggregation
                 (exactly as if they were removed) and their output embeddings are zero;
                 their indices must still be valid node indices (e.g. the node itself).
+            mesh_slots: Optional :func:`~torch_ampn.nn._conv.incoming_slots` of ``mesh_index``:
+                aggregate by a dense reduction instead of a scatter (same result; faster
+                where the graph is fixed, as in a rollout).
+            contact_slots: The same for the contact edges (masked slots left out).
 
         Returns:
             ``(x, e_mesh, e_contact)`` with the shapes of the inputs.
@@ -93,8 +99,13 @@ class IntraLevelConv(EmbeddingConv):
         )  # [M, d]
         e_mesh = self.lin_mesh(e_mesh) + self.mlp_mesh.forward_edges(x, x, e_mesh, mesh_index)  # [E, d]
 
-        agg_mesh = self.propagate(mesh_index, edge_attr=e_mesh, size=(num_nodes, num_nodes))  # [N, d]
-        if contact_mask is None:
+        size = (num_nodes, num_nodes)
+        agg_mesh = self.aggregate_edges(mesh_index, e_mesh, size, mesh_slots)  # [N, d]
+        if contact_slots is not None and isinstance(self.aggr, str):  # masked slots are left out
+            agg_contact = self.aggregate_edges(contact_index, e_contact, size, contact_slots)
+            if contact_mask is not None:
+                e_contact = torch.where(contact_mask.unsqueeze(-1), e_contact, 0.0)
+        elif contact_mask is None:
             agg_contact = self.propagate(contact_index, edge_attr=e_contact, size=(num_nodes, num_nodes))
         else:
             # Send masked-out messages to a dummy node N, dropped afterwards: exact for

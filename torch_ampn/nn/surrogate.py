@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -243,10 +243,41 @@ class AMPNSurrogate(nn.Module):
         Tool rows are whatever the network says; callers replace them by the prescribed motion.
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
-        out = self.diffusion.sample(x_dict, index_dict, e_dict, generator=generator)
+        return self.residual_from_features(
+            x_dict, index_dict, e_dict, data["l0"].prev_disp, generator=generator
+        )
+
+    def residual_from_features(
+        self,
+        x_dict: dict[str, Tensor],
+        edge_index_dict: dict[EdgeType, Tensor],
+        edge_attr_dict: dict[EdgeType, Tensor],
+        prev_disp: Tensor,
+        contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+        generator: torch.Generator | None = None,
+        network: nn.Module | None = None,
+        draw: Callable[[], Tensor] | None = None,
+    ) -> Tensor:
+        r""":meth:`predict_residual` from normalised features (:meth:`normalized_features`), ``[N_0, 3]`` mm.
+
+        Args:
+            x_dict: Normalised node features.
+            edge_index_dict: Edge indices (contact: an edge list, or every slot of a fixed-size
+                table with ``contact_mask_dict``).
+            edge_attr_dict: Normalised edge features.
+            prev_disp: :math:`\Delta u^{t-1}` of the ``l0`` nodes ``[N_0, 3]`` (used with ``predict_change``).
+            contact_mask_dict: Validity of the contact slots (see :meth:`~torch_ampn.nn.AMPN.forward`).
+            generator: Random generator of the sampling noise.
+            network: Runs in place of the AMPN (e.g. compiled).
+            draw: Noise source in place of ``generator`` (see :meth:`DiffusionAMPN.sample`).
+        """
+        out = self.diffusion.sample(
+            x_dict, edge_index_dict, edge_attr_dict, contact_mask_dict,
+            generator=generator, network=network, draw=draw,
+        )  # fmt: skip
         residual = self.target_norm.denormalize(out.float())
         if self.predict_change:
-            residual = residual + data["l0"].prev_disp.to(residual.dtype)
+            residual = residual + prev_disp.to(residual.dtype)
         return residual
 
     def extra_repr(self) -> str:

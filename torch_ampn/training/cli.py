@@ -33,7 +33,14 @@ from torch_ampn.training.module import AMPNLightningModule
 
 #: Options of :class:`AMPNLightningModule` that do not change the network: given with
 #: ``--ckpt_path``, they win over the checkpoint's values.
-RUNTIME_OPTIONS = ("output_dir", "export_xdmf", "rollout_seed", "touch_radii", "compile_network")
+RUNTIME_OPTIONS = (
+    "output_dir",
+    "export_xdmf",
+    "rollout_seed",
+    "touch_radii",
+    "compile_network",
+    "fast_rollout",
+)
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -140,6 +140,11 @@ class AMPNLightningModule(L.LightningModule):
             measures both). Validation, test and predict stay eager, and
             checkpoints are the same as without it. If compiling fails (e.g. no C++ compiler),
             training warns and goes on eager.
+        fast_rollout: Roll out (validate, test, predict) on the static-shape, compiled path
+            (:class:`~torch_ampn.fast_rollout.FastRollout`: the same result up to summation
+            order, compiled once per mesh); ``False``: the plain path of
+            :func:`~torch_ampn.rollout.rollout`. Contact settings without a fast path
+            (``contact_mode="radius"``) take the plain path with a warning.
     """
 
     def __init__(
@@ -178,6 +183,7 @@ class AMPNLightningModule(L.LightningModule):
         output_dir: str | None = None,
         export_xdmf: bool = True,
         compile_network: bool = False,
+        fast_rollout: bool = True,
     ) -> None:
         super().__init__()
         if not 0.0 <= pushforward <= 1.0:
@@ -383,14 +389,20 @@ class AMPNLightningModule(L.LightningModule):
         """Roll the surrogate out over ``item``'s trajectory: ``([T+1, N, 3] positions, seconds)``."""
         generator = self._generator(item.index)
         start = time.perf_counter()
-        pred = rollout(
-            lambda data: self.surrogate.predict_residual(data, generator),
-            item.trajectory,
-            item.hierarchy,
-            self.surrogate.contact,
-            device=self.device,
-            progress=progress,
-        )
+        if self.hparams.get("fast_rollout", True):
+            pred = rollout(
+                self.surrogate, item.trajectory, item.hierarchy, device=self.device, progress=progress,
+                fast=True, generator=generator,
+            )  # fmt: skip
+        else:
+            pred = rollout(
+                lambda data: self.surrogate.predict_residual(data, generator),
+                item.trajectory,
+                item.hierarchy,
+                self.surrogate.contact,
+                device=self.device,
+                progress=progress,
+            )
         return pred, time.perf_counter() - start
 
     def on_validation_epoch_start(self) -> None:

@@ -1,0 +1,98 @@
+"""The example configs parse and instantiate through the ``torch-ampn`` CLI, with the values they set.
+
+No training and no data: ``main(..., run=False)`` only builds the model, the data module and the
+Trainer (on the CPU; paper.yaml asks for a GPU). The expected values are read from the YAML
+files, so the test follows edits of the configs; the paper's architecture is also checked by
+its numbers (d = 128, 15 layers, 4 levels, k = 3).
+"""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytest.importorskip("lightning")
+
+from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
+from torch_ampn.training.cli import main  # noqa: E402
+
+CONFIGS = Path(__file__).resolve().parents[1] / "examples" / "configs"
+NAMES = ["quickstart.yaml", "paper.yaml"]
+
+
+def _build(name, tmp_path, monkeypatch):
+    """The CLI of ``examples/configs/<name>``, built in ``tmp_path`` (relative paths land there)."""
+    monkeypatch.chdir(tmp_path)
+    cli = main(["--config", str(CONFIGS / name), "--trainer.accelerator", "cpu"], run=False)
+    return cli, yaml.safe_load((CONFIGS / name).read_text())
+
+
+def _same(a, b):
+    """Equal, floats up to rounding (YAML's ``1.0e-4`` vs the parsed value)."""
+    if isinstance(b, float) and not isinstance(a, bool):
+        return a == pytest.approx(b)
+    return type(a) is type(b) and a == b
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_config_builds_model_data_and_trainer(name, tmp_path, monkeypatch):
+    cli, config = _build(name, tmp_path, monkeypatch)
+    model, dm, trainer = cli.model, cli.datamodule, cli.trainer
+    assert isinstance(model, AMPNLightningModule) and isinstance(dm, AMPNDataModule)
+
+    # every model and data value of the YAML reaches the instantiated modules
+    for key, value in config["model"].items():
+        assert _same(model.hparams[key], value), f"model.{key}: {model.hparams[key]!r} != {value!r}"
+    for key, value in config["data"].items():
+        assert _same(dm.hparams[key], value), f"data.{key}: {dm.hparams[key]!r} != {value!r}"
+
+    # ... and the network built from them
+    hp, surrogate = model.hparams, model.surrogate
+    net = surrogate.model
+    assert net.hidden_channels == hp.hidden_channels
+    assert net.mlp_channels == hp.mlp_channels
+    assert net.num_levels == surrogate.num_levels == hp.num_levels
+    layers = [hp[f"{s}_layers"] for s in ("pre", "down", "solve", "post", "up")]
+    assert [len(s) for s in (net.pre, net.down, net.solve, net.post, net.up)] == layers
+    assert net.num_layers == sum(layers)
+    assert surrogate.contact.k == hp.contact_k and surrogate.contact.r == hp.contact_radius
+    assert surrogate.diffusion_steps == hp.diffusion_steps == 1
+    assert model._compiled_network is (None if hp.compile_network else False)  # compiles at the first step
+
+    # the CLI links the model's contact settings and level count into the data module
+    assert dm.hparams.contact_k == hp.contact_k and dm.hparams.contact_radius == hp.contact_radius
+    assert dm.contact.k == hp.contact_k and dm.contact.r == hp.contact_radius
+    assert dm.hparams.max_levels == hp.num_levels
+
+    # the Trainer: the config's limits, the CLI's clipping default, the config's callbacks
+    t = config["trainer"]
+    assert trainer.max_steps == t["max_steps"]
+    assert trainer.val_check_interval == t["val_check_interval"]
+    assert trainer.gradient_clip_val == 1.0
+    logger_class = t["logger"]["class_path"].rsplit(".", 1)[1]
+    assert type(trainer.logger).__name__ == logger_class
+    callbacks = {type(c).__name__ for c in trainer.callbacks}
+    assert {c["class_path"].rsplit(".", 1)[1] for c in t["callbacks"]} <= callbacks
+    assert trainer.checkpoint_callback.monitor == "val/rollout_rmse"
+
+    # building touched nothing: no data generated, no output folders
+    assert not (tmp_path / dm.hparams.data_dir).exists()
+    assert not (tmp_path / "outputs").exists()
+
+
+def test_paper_config_has_the_papers_network(tmp_path, monkeypatch):
+    cli, config = _build("paper.yaml", tmp_path, monkeypatch)
+    assert config["trainer"]["accelerator"] == "gpu"  # replaced by cpu above
+    net = cli.model.surrogate.model
+    assert (net.hidden_channels, net.mlp_channels) == (128, 128)
+    assert net.num_layers == 15 and net.num_levels == 4
+    assert cli.model.surrogate.contact.k == 3 and cli.model.surrogate.contact.r == 3.0
+    assert cli.datamodule.hparams.resolution == "paper" and cli.datamodule.hparams.batch_size == 1
+
+
+def test_quickstart_config_is_smaller_than_the_papers(tmp_path, monkeypatch):
+    quick, _ = _build("quickstart.yaml", tmp_path, monkeypatch)
+    paper, _ = _build("paper.yaml", tmp_path, monkeypatch)
+    count = lambda cli: sum(p.numel() for p in cli.model.parameters())  # noqa: E731
+    assert count(quick) < count(paper)
+    assert quick.trainer.accelerator.__class__.__name__ == "CPUAccelerator"

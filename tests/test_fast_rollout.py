@@ -1,0 +1,216 @@
+"""The fast rollout: contact candidates, slot aggregation, FastRollout against the plain path."""
+
+import warnings
+
+import pytest
+import torch
+
+from torch_ampn.data import HierarchyCache, step_sample
+from torch_ampn.fast_rollout import FastRollout, cached_fast_rollout
+from torch_ampn.nn import AMPNSurrogate, InterLevelConv, IntraLevelConv
+from torch_ampn.nn._conv import incoming_slots
+from torch_ampn.rollout import rollout
+from torch_ampn.testing import contact_edges_brute_force, random_edge_index, small_trajectory
+from torch_ampn.transforms import component_radius_table, table_to_edge_index
+from torch_ampn.transforms.candidates import ContactCandidates
+
+
+# ---- contact candidates ----------------------------------------------------------------------
+def _walk(steps: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Three components of 40 nodes in a box, moving by a random walk (ties included at t = 0)."""
+    g = torch.Generator().manual_seed(seed)
+    grid = torch.stack(torch.meshgrid(torch.arange(5.0), torch.arange(8.0), indexing="ij"), -1).reshape(-1, 2)
+    pos0 = torch.cat([torch.cat([grid, torch.full((40, 1), 0.7 * c)], 1) for c in range(3)])  # [120, 3]
+    walk = torch.cumsum(0.03 * torch.randn(steps, 120, 3, generator=g), 0)
+    return torch.cat([pos0[None], pos0[None] + walk]), torch.arange(3).repeat_interleave(40)
+
+
+@pytest.mark.parametrize("mode", ["dense", "verlet", "search"])
+@pytest.mark.parametrize("k", [1, 3])
+def test_candidates_give_the_searched_table_at_every_step(mode, k):
+    pos, comp = _walk(30, seed=k)
+    batch = torch.arange(2).repeat_interleave(60)  # two graphs: never linked across
+    cand = ContactCandidates(
+        comp, 1.6, k, num_components=3, batch=batch, skin=0.4, capacity=4 * k + 4, mode=mode
+    )
+    for t in range(pos.size(0)):
+        nbr, mask = cand(pos[t])
+        ref_nbr, ref_mask = component_radius_table(pos[t], comp, 1.6, k, num_components=3, batch=batch)
+        assert torch.equal(nbr, ref_nbr) and torch.equal(mask, ref_mask), t
+    if mode == "verlet":  # the small skin forces searches, but not one per step
+        assert 1 < cand.searches < pos.size(0)
+    if mode == "dense":
+        assert cand.searches == 1
+
+
+def test_candidates_match_brute_force_per_graph():
+    pos, comp = _walk(3, seed=5)
+    cand = ContactCandidates(comp, 1.2, 2, mode="verlet", skin=0.1, capacity=2)
+    for t in range(pos.size(0)):
+        edges = table_to_edge_index(*cand(pos[t]))
+        ref = contact_edges_brute_force(pos[t], comp, 1.2, 2)
+        assert torch.equal(edges, ref)
+
+
+def test_candidate_check_fails_when_a_far_node_comes_close():
+    """Hand case: 1 candidate kept; a node outside the list moves next to the query node."""
+    pos = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])  # node 0 (comp 0); 1, 2 (comp 1)
+    comp = torch.tensor([0, 1, 1])
+    cand = ContactCandidates(comp, 3.0, 1, skin=0.0, capacity=1, mode="verlet")
+    cand.build(pos)
+    assert cand.select(pos)[2]  # as searched
+    moved = pos.clone()
+    moved[2, 0] = 0.5  # now nearer than the candidate (node 1)
+    assert not cand.select(moved)[2]
+    nbr, mask = cand(moved)  # searches again
+    assert nbr[0].tolist() == [2] and mask[0].tolist() == [True] and cand.searches == 2
+
+
+# ---- slot aggregation ------------------------------------------------------------------------
+@pytest.mark.parametrize("aggr", ["max", "sum", "mean"])
+def test_slot_aggregation_equals_propagate(aggr):
+    torch.manual_seed(0)
+    n, d = 9, 8
+    conv = IntraLevelConv(d, 16, aggr=aggr)
+    x = torch.randn(n, d)
+    mesh = random_edge_index(n, n, 30)
+    mesh = mesh[:, mesh[1] != 4]  # node 4 has no incoming mesh edge: aggregates to 0
+    contact = torch.stack([torch.randint(0, n, (n * 2,)), torch.arange(n).repeat_interleave(2)])
+    mask = torch.rand(n * 2) > 0.4
+    e_mesh, e_contact = torch.randn(mesh.size(1), d), torch.randn(contact.size(1), d)
+    ref = conv(x, mesh, e_mesh, contact, e_contact, mask)
+    slots = (incoming_slots(mesh, n), torch.where(mask.view(n, 2), torch.arange(2 * n).view(n, 2), -1))
+    out = conv(x, mesh, e_mesh, contact, e_contact, mask, *slots)
+    for a, b in zip(out, ref, strict=True):
+        torch.testing.assert_close(a, b)
+    inter = InterLevelConv(d, 16, aggr=aggr)
+    down = torch.stack([torch.arange(n), torch.tensor([0, 0, 1, 1, 1, 2, 2, 0, 1])])  # coarse node 3: none
+    xs = (x, torch.randn(4, d))
+    e = torch.randn(n, d)
+    for a, b in zip(inter(xs, down, e, incoming_slots(down, 4)), inter(xs, down, e), strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_incoming_slots_by_hand():
+    edge_index = torch.tensor([[0, 1, 2, 3], [2, 0, 2, 2]])
+    slots = incoming_slots(edge_index, 4)
+    assert slots.tolist() == [[1, -1, -1], [-1, -1, -1], [0, 2, 3], [-1, -1, -1]]
+    masked = incoming_slots(edge_index, 4, mask=torch.tensor([True, True, False, True]))
+    assert masked.tolist() == [[1, -1], [-1, -1], [0, 3], [-1, -1]]
+
+
+# ---- FastRollout -----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def long_run(small_sim):
+    """A 50-step run of the small setting (seed 3)."""
+    import dataclasses
+
+    from torch_ampn.sim import simulate_batch
+
+    return simulate_batch(dataclasses.replace(small_sim, num_steps=50), seeds=[3, 4])
+
+
+def _surrogate(traj, hierarchy, **kwargs) -> AMPNSurrogate:
+    """A quickstart-size surrogate (d = 32, 3 levels) with random weights and real statistics."""
+    torch.manual_seed(0)
+    args = dict(hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1,
+                solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1,
+                num_components=int(traj.component.max()) + 1, num_grippers=traj.num_grippers)  # fmt: skip
+    s = AMPNSurrogate(**{**args, **kwargs})
+    for t in range(1, traj.num_steps + 1, 5):
+        s.accumulate_statistics(s.contact(step_sample(traj, t, hierarchy)))
+    s.freeze_statistics()
+    return s.eval()
+
+
+def _plain(surrogate, traj, hierarchy, seed=3):
+    g = torch.Generator().manual_seed(seed)
+    return rollout(lambda d: surrogate.predict_residual(d, g), traj, hierarchy, surrogate.contact)
+
+
+@pytest.fixture(scope="module")
+def hierarchy(long_run):
+    return HierarchyCache(None, max_levels=3, min_coarse_nodes=4)(long_run[0])
+
+
+@pytest.mark.parametrize("candidates", ["auto", ("search", "verlet", "dense")])
+def test_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, candidates):
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy)
+    ref = _plain(s, traj, hierarchy)
+    assert (ref[-1] - ref[0]).abs().max() > 1.0  # the plies move: the comparison means something
+    fast = FastRollout(s, hierarchy, compile=False, candidates=candidates)
+    out = fast([traj], [torch.Generator().manual_seed(3)])[0]
+    assert out.shape == ref.shape == (51, traj.num_nodes, 3)
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+
+
+def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy)
+    ref = _plain(s, traj, hierarchy)
+    out = rollout(s, traj, hierarchy, fast=True, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+    runner = cached_fast_rollout(s, hierarchy)
+    assert runner.compiled  # it did compile (no silent fallback on this machine)
+
+
+def test_a_batch_of_settings_equals_its_settings_one_by_one(long_run, hierarchy):
+    s = _surrogate(long_run[0], hierarchy, diffusion_steps=3)  # ROBIN: several noise draws per step
+    trajs = [long_run[0], long_run[1], long_run[0]]
+    batch = FastRollout(s, hierarchy, batch_size=4, compile=False)
+    out = batch(trajs, [torch.Generator().manual_seed(i) for i in range(3)], num_steps=12)
+    assert out.shape == (3, 13, long_run[0].num_nodes, 3)
+    single = FastRollout(s, hierarchy, batch_size=1, compile=False)
+    for i, traj in enumerate(trajs):
+        one = single([traj], [torch.Generator().manual_seed(i)], num_steps=12)[0]
+        torch.testing.assert_close(out[i], one, atol=1e-5, rtol=0)
+    assert not torch.allclose(out[0], out[2])  # other noise, other rollout
+
+
+def test_failed_compile_warns_and_runs_eagerly(long_run, hierarchy, monkeypatch):
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy)
+
+    def broken(fn, **kwargs):
+        def call(*args, **kw):
+            raise RuntimeError("no C++ compiler")
+
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken)
+    fast = FastRollout(s, hierarchy, compile=True)
+    with pytest.warns(RuntimeWarning, match="runs eagerly"):
+        out = fast([traj], [torch.Generator().manual_seed(3)], num_steps=10)[0]
+    assert not fast.compiled
+    torch.testing.assert_close(out, _plain(s, traj, hierarchy)[:11], atol=1e-4, rtol=0)
+
+
+def test_settings_without_a_fast_path_take_the_plain_path(long_run, hierarchy):
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy, contact_mode="radius")
+    with pytest.warns(RuntimeWarning, match="taking the plain path"):
+        out = rollout(s, traj, hierarchy, fast=True, generator=torch.Generator().manual_seed(3), num_steps=5)
+    torch.testing.assert_close(out, _plain(s, traj, hierarchy)[:6])
+
+
+def test_static_contact_fast_path(long_run, hierarchy):
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy, contact_positions="initial")
+    out = FastRollout(s, hierarchy, compile=False)([traj], [torch.Generator().manual_seed(3)], num_steps=10)[
+        0
+    ]
+    torch.testing.assert_close(out, _plain(s, traj, hierarchy)[:11], atol=1e-4, rtol=0)
+
+
+def test_fast_rollout_refuses_another_mesh(long_run, hierarchy):
+    s = _surrogate(long_run[0], hierarchy)
+    fast = FastRollout(s, hierarchy, compile=False)
+    other = small_trajectory()
+    with pytest.raises(ValueError, match="nodes; this FastRollout's mesh has"):
+        fast([other])
+    with pytest.raises(ValueError, match="expected 1 to 1 trajectories"):
+        fast([long_run[0], long_run[1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fast([long_run[0]], num_steps=2)  # no generator: the default one, no warning

@@ -1,0 +1,415 @@
+r"""A fast rollout of an :class:`~torch_ampn.nn.AMPNSurrogate`: static shapes, compiled, batched.
+
+:func:`~torch_ampn.rollout.rollout` rebuilds a :class:`~torch_ampn.data.HierarchicalData` window,
+searches the contact edges and builds the features with many small eager operations every
+step. :class:`FastRollout` does the same arithmetic with fixed shapes:
+
+* everything that does not change during a rollout (mesh, down and up edges with their
+  offsets for ``B`` settings, node types, components, fibres, the coarse features) is built
+  once;
+* the contact edges of every level are the fixed-size tables of
+  :func:`~torch_ampn.transforms.component_radius_table` (every slot an edge, with a validity
+  mask), selected from candidates kept between steps
+  (:class:`~torch_ampn.transforms.candidates.ContactCandidates`), which search again only when
+  they cannot guarantee the exact table;
+* the step (contact selection, features, normalisation) and the network are compiled with
+  ``torch.compile`` (static shapes) when ``compile=True``; where compiling fails (no C++
+  compiler, an unsupported device) it warns once and runs the same code eagerly;
+* ``B`` process settings of the same mesh (a design study) are rolled out as one batch.
+
+The result equals :func:`~torch_ampn.rollout.rollout` with ``surrogate.predict_residual``
+up to floating-point summation order (the same contact edges, features and noise draws; each
+setting draws its noise from its own generator, so a batch equals its settings one by one).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections import OrderedDict
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
+from torch_ampn.data.node_type import NodeType
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.nn._conv import incoming_slots
+from torch_ampn.nn.features import edge_features, fine_node_features, gripper_features
+from torch_ampn.nn.surrogate import AMPNSurrogate
+from torch_ampn.transforms.candidates import CandidateState, ContactCandidates, DenseState, select_table
+from torch_ampn.transforms.radius import component_radius_table
+
+#: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
+_CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
+#: How many :func:`cached_fast_rollout` keeps (each holds its compiled code and its hierarchy).
+CACHE_SIZE = 8
+
+
+def cached_fast_rollout(
+    surrogate: AMPNSurrogate,
+    hierarchy: HierarchicalData,
+    batch_size: int = 1,
+    compile: bool = True,
+    device: torch.device | str | None = None,
+) -> FastRollout:
+    """A :class:`FastRollout` for these arguments, built at the first call and reused after.
+
+    Reuse matters: building one compiles its step again. The cache holds the last
+    :data:`CACHE_SIZE` (a validation loop over one mesh builds one).
+    """
+    dev = torch.device(device) if device is not None else next(surrogate.parameters()).device
+    key = (id(surrogate), id(hierarchy), batch_size, compile, str(dev))
+    runner = _CACHE.get(key)
+    if runner is None or runner.surrogate is not surrogate or runner.source is not hierarchy:
+        runner = FastRollout(surrogate, hierarchy, batch_size=batch_size, compile=compile, device=dev)
+        _CACHE[key] = runner
+        while len(_CACHE) > CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    _CACHE.move_to_end(key)
+    return runner
+
+
+class FastPathUnavailable(ValueError):
+    """The surrogate's settings have no fast path (e.g. plain-radius contact edges)."""
+
+
+def fast_path_supported(surrogate: AMPNSurrogate) -> str | None:
+    """``None`` if :class:`FastRollout` supports ``surrogate``, else the reason why not."""
+    if surrogate.contact.mode != "component_knn":
+        return f"contact mode {surrogate.contact.mode!r} has no fixed-size contact tables"
+    return None
+
+
+class FastRollout:
+    r"""Rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out over ``B`` settings of one mesh at once.
+
+    Build it once per (surrogate, mesh, batch size); call it for every batch of trajectories
+    of that mesh (compiled code is reused).
+
+    Args:
+        surrogate: The trained surrogate (its weights are read at every call, not copied).
+        hierarchy: The mesh's hierarchy (e.g. from :class:`~torch_ampn.data.HierarchyCache`).
+        batch_size: ``B``, settings per call.
+        compile: Compile the step and the network (``torch.compile``, static shapes).
+        device: Where to run (default: the surrogate's device).
+        candidates: ``mode`` of :class:`~torch_ampn.transforms.candidates.ContactCandidates`
+            (``"auto"``, ``"dense"`` or ``"verlet"``).
+        skin: Verlet skin (default: the level's radius).
+        capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
+
+    Example::
+
+        fast = FastRollout(surrogate, hierarchy, batch_size=8)
+        pred = fast(trajectories, generators)  # [8, T + 1, N, 3]
+    """
+
+    def __init__(
+        self,
+        surrogate: AMPNSurrogate,
+        hierarchy: HierarchicalData,
+        batch_size: int = 1,
+        compile: bool = True,
+        device: torch.device | str | None = None,
+        candidates: str | Sequence[str] = "auto",
+        skin: float | None = None,
+        capacity: int | None = None,
+    ) -> None:
+        reason = fast_path_supported(surrogate)
+        if reason is not None:
+            raise FastPathUnavailable(f"no fast rollout: {reason}")
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.surrogate = surrogate
+        self.batch_size = b = batch_size
+        self.device = torch.device(device) if device is not None else next(surrogate.parameters()).device
+        self.num_levels = surrogate.num_levels
+        if hierarchy.num_levels < self.num_levels:
+            raise ValueError(
+                f"the model uses {self.num_levels} levels but the hierarchy has only {hierarchy.num_levels}"
+            )
+        self.source = hierarchy  # the caller's object (cache key); h is on the device
+        h = (
+            hierarchy.clone().to(self.device)
+            if hierarchy.mesh(0).edge_index.device != self.device
+            else hierarchy
+        )
+        self.hierarchy = h
+        sizes = [h.level(k).num_nodes for k in range(self.num_levels)]  # N_k of one setting
+        self.num_nodes = sizes[0]
+        dev = self.device
+        graph = [torch.arange(b, device=dev).repeat_interleave(n) for n in sizes]  # [B N_k]
+
+        def repeat_edges(index: Tensor, src: int, dst: int) -> Tensor:  # [2, E] -> [2, B E]
+            shift = torch.arange(b, device=dev)[:, None]
+            return torch.stack(
+                [
+                    (index[0][None] + shift * sizes[src]).reshape(-1),
+                    (index[1][None] + shift * sizes[dst]).reshape(-1),
+                ]
+            )
+
+        fine = h["l0"]
+        self.batch0 = graph[0]
+        self.node_type = fine.node_type.repeat(b)
+        self.component = fine.component.repeat(b)
+        self.ply = (fine.node_type == NodeType.PLY).repeat(b)  # [B N]
+        shift = torch.arange(b, device=dev)[:, None] * sizes[0]
+        self.fine_index = [torch.arange(b * sizes[0], device=dev)] + [
+            (h.fine_index(k)[None] + shift).reshape(-1) for k in range(1, self.num_levels)
+        ]  # level k -> rows of the batched l0
+        self.level_component = [self.component[idx] for idx in self.fine_index]
+        self.edges: dict = {}
+        for k in range(self.num_levels):
+            self.edges[edge_type(MESH, k)] = repeat_edges(h[edge_type(MESH, k)].edge_index, k, k)
+            if k + 1 < self.num_levels:
+                self.edges[edge_type(DOWN, k)] = repeat_edges(h[edge_type(DOWN, k)].edge_index, k, k + 1)
+                self.edges[edge_type(UP, k)] = repeat_edges(h[edge_type(UP, k)].edge_index, k + 1, k)
+        # aggregation tables of the fixed edge sets (dense reductions instead of scatters)
+        self.slots = {
+            key: incoming_slots(index, b * sizes[int(key[2][1:])]) for key, index in self.edges.items()
+        }
+        # features that never change: coarse node types, initial relative positions
+        s = surrogate
+        self.coarse_x = {
+            level_name(k): s.node_norm["coarse"](
+                torch.nn.functional.one_hot(
+                    self.node_type[self.fine_index[k]].long(), NodeType.count()
+                ).float()
+            )
+            for k in range(1, self.num_levels)
+        }
+        contact = s.contact
+        self.radius = [contact.level_radius(k) for k in range(self.num_levels)]
+        self.k = contact.k
+        self.static_contact = contact.positions == "initial"
+        modes = [candidates] * self.num_levels if isinstance(candidates, str) else list(candidates)
+        if len(modes) != self.num_levels:
+            raise ValueError(
+                f"candidates: expected one mode or {self.num_levels} (one per level), got {candidates!r}"
+            )
+        self.candidates = [
+            ContactCandidates(
+                self.level_component[k],
+                self.radius[k],
+                self.k,
+                num_components=s.num_components,
+                batch=graph[k],
+                skin=skin,
+                capacity=capacity,
+                mode=modes[k],
+            )  # fmt: skip
+            for k in range(self.num_levels)
+        ]
+        self.contact_target = [
+            torch.arange(b * n, device=dev).repeat_interleave(self.k * (s.num_components - 1)) for n in sizes
+        ]
+        self._static_tables: list[tuple[Tensor, Tensor]] | None = None
+        self.compiled = False
+        self._inputs, self._network = self._step_inputs, None
+        if compile:
+            self._inputs = torch.compile(self._step_inputs, dynamic=False)
+            self._network = torch.compile(s.model, dynamic=False)
+            self.compiled = True
+
+    # ---- one step ---------------------------------------------------------------------------
+    def _step_inputs(
+        self,
+        pos: Tensor,
+        prev_disp: Tensor,
+        bc_disp: Tensor,
+        gripper_pos: Tensor,
+        gripper_force: Tensor,
+        fiber: Tensor,
+        pos0_l: list[Tensor],
+        states: list[CandidateState | DenseState] | None,
+        tables: list[tuple[Tensor, Tensor]] | None,
+    ) -> tuple[dict, dict, dict, dict, Tensor]:
+        """Normalised features, edges and contact masks of a step, and whether the contact is exact."""
+        s = self.surrogate
+        pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
+        exact = torch.ones((), dtype=torch.bool, device=pos.device)
+        if tables is None:
+            tables = []
+            for k in range(self.num_levels):
+                nbr, mask, ok = select_table(
+                    pos_l[k], states[k], self.radius[k], self.k, self.candidates[k].num_groups
+                )
+                tables.append((nbr, mask))
+                exact = exact & ok
+        grip = gripper_features(pos, gripper_pos, gripper_force, self.batch0, s.gripper_alpha)
+        x = fine_node_features(
+            self.node_type, prev_disp, bc_disp, fiber, self.component, s.num_components, grip
+        )
+        x_dict = {"l0": s.node_norm["fine"](x), **self.coarse_x}
+        index_dict, e_dict, mask_dict, slots = {}, {}, {}, dict(self.slots)
+        for k in range(self.num_levels):
+            key = edge_type(MESH, k)
+            index_dict[key] = self.edges[key]
+            e_dict[key] = s.edge_norm[MESH](
+                edge_features(self.edges[key], pos_l[k], pos_l[k], pos0_l[k], pos0_l[k])
+            )
+            key = edge_type(CONTACT, k)
+            nbr, mask = tables[k]
+            index = torch.stack([nbr.reshape(-1), self.contact_target[k]])
+            index_dict[key] = index
+            e_dict[key] = s.edge_norm[CONTACT](edge_features(index, pos_l[k], pos_l[k]))
+            mask_dict[key] = mask.reshape(-1)
+            slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
+            slots[key] = torch.where(mask, slot_ids, -1)  # [N_k, k (C-1)]: the table's own layout
+            if k + 1 < self.num_levels:
+                for rel, src, dst in ((DOWN, k, k + 1), (UP, k + 1, k)):
+                    key = edge_type(rel, k)
+                    index_dict[key] = self.edges[key]
+                    e_dict[key] = s.edge_norm[rel](
+                        edge_features(self.edges[key], pos_l[src], pos_l[dst], pos0_l[src], pos0_l[dst])
+                    )
+        return x_dict, index_dict, e_dict, mask_dict, slots, exact
+
+    def _inputs_checked(self, *args) -> tuple[dict, dict, dict, dict, dict]:
+        """:meth:`_step_inputs`, searching the contact candidates again where they are not exact."""
+        pos = args[0]
+        if self._static_tables is not None:
+            return self._call_inputs(*args, None, self._static_tables)[:5]
+        pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
+        for k, cand in enumerate(self.candidates):
+            if cand.state is None or cand.mode == "search":
+                cand.build(pos_l[k])
+        out = self._call_inputs(*args, [c.state for c in self.candidates], None)
+        if bool(out[5]):
+            return out[:5]
+        for k, cand in enumerate(self.candidates):  # search again where the check fails
+            if not bool(cand.select(pos_l[k])[2]):
+                cand.build(pos_l[k])
+        return self._call_inputs(*args, [c.state for c in self.candidates], None)[:5]
+
+    def _call_inputs(self, *args):
+        if self.compiled:
+            try:
+                return self._inputs(*args)
+            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
+                self._fall_back(err)
+        return self._step_inputs(*args)
+
+    def _fall_back(self, err: Exception) -> None:
+        warnings.warn(
+            f"torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+            "the fast rollout runs eagerly",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        self.compiled = False
+        self._inputs, self._network = self._step_inputs, None
+
+    # ---- the rollout ------------------------------------------------------------------------
+    @torch.no_grad()
+    def __call__(
+        self,
+        trajectories: Sequence[Trajectory],
+        generators: Sequence[torch.Generator | None] | None = None,
+        num_steps: int | None = None,
+        progress: bool = False,
+    ) -> Tensor:
+        """Roll out ``B`` trajectories of this mesh from their initial states.
+
+        Args:
+            trajectories: ``B`` trajectories (at most ``batch_size``; fewer are padded with the last).
+                Their initial states, gripper settings and tool motion are used.
+            generators: One noise generator per trajectory (``None``: the default generator).
+            num_steps: Steps to roll out (default: all ``T``; every trajectory must have them).
+            progress: Show a progress bar.
+
+        Returns:
+            Predicted positions ``[B, num_steps + 1, N, 3]`` (float32, CPU); row 0 is the initial state.
+        """
+        trajs = list(trajectories)
+        count = len(trajs)
+        if not 1 <= count <= self.batch_size:
+            raise ValueError(f"expected 1 to {self.batch_size} trajectories, got {count}")
+        for i, traj in enumerate(trajs):
+            if traj.num_nodes != self.num_nodes:
+                raise ValueError(
+                    f"trajectory {i} has {traj.num_nodes} nodes; this FastRollout's mesh has {self.num_nodes}"
+                )
+        gens = list(generators) if generators is not None else [None] * count
+        if len(gens) != count:
+            raise ValueError(f"got {len(gens)} generators for {count} trajectories")
+        steps = min(t.num_steps for t in trajs) if num_steps is None else num_steps
+        if not 1 <= steps <= min(t.num_steps for t in trajs):
+            raise ValueError(f"num_steps must be in 1..{min(t.num_steps for t in trajs)}, got {steps}")
+        pad = self.batch_size - count
+        trajs, gens = trajs + trajs[-1:] * pad, gens + [None] * pad
+        dev, n = self.device, self.num_nodes
+        tool_path = torch.cat([t.pos[: steps + 1].to(dev).float() for t in trajs], dim=1)  # [T+1, B N, 3]
+        # grippers hold ply nodes: their points and forces follow the predicted positions
+        gripper_nodes = torch.stack(
+            [t.gripper_nodes.to(dev) + i * n for i, t in enumerate(trajs)]
+        )  # [B, G, m]
+        anchor = torch.stack([t.gripper_anchor.to(dev) for t in trajs]).to(pred_dtype := torch.float32)
+        magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).to(pred_dtype)[
+            ..., None
+        ]  # [B, G, 1]
+        fiber = torch.cat([t.fiber.to(dev).float() for t in trajs])  # [B N, 3]
+        pos0_l = [tool_path[0][idx] for idx in self.fine_index]
+        if self.static_contact:  # ROBIN's edges: from the initial state, once per rollout
+            self._static_tables = [
+                component_radius_table(
+                    pos0_l[k],
+                    self.level_component[k],
+                    self.radius[k],
+                    self.k,
+                    num_components=self.surrogate.num_components,
+                    batch=cand.batch,
+                    backend=self.surrogate.contact.backend,
+                )  # fmt: skip
+                for k, cand in enumerate(self.candidates)
+            ]
+        ply = self.ply
+        pred = tool_path.clone()  # [T+1, B N, 3]: tools on their path, plies predicted
+        pred[1:, ply] = pred[0, ply]
+        for cand in self.candidates:
+            cand.state = None  # a new rollout searches from its initial state
+        noise_gens = gens[:count]
+
+        def draw() -> Tensor:  # one [N, 3] sample per real setting, in the plain rollout's order
+            parts = [torch.randn(n, 3, generator=g, device=dev) for g in noise_gens]
+            parts += [torch.zeros(n, 3, device=dev)] * pad
+            return torch.cat(parts)
+
+        iterator = range(1, steps + 1)
+        if progress:
+            from tqdm.auto import tqdm
+
+            iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
+        zero = torch.zeros_like(pred[0])
+        for t in iterator:
+            pos = pred[t - 1]
+            prev_disp = pos - pred[t - 2] if t >= 2 else zero
+            bc_disp = torch.where(ply[:, None], zero, tool_path[t] - pos)
+            gripper_pos = pos[gripper_nodes].mean(2)  # [B, G, 3], as Trajectory.gripper_positions
+            d = anchor - gripper_pos
+            gripper_force = magnitude * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            x_dict, index_dict, e_dict, mask_dict, slots = self._inputs_checked(
+                pos, prev_disp, bc_disp, gripper_pos, gripper_force, fiber, pos0_l
+            )
+            noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
+            du = self._residual(x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise)
+            pred[t] = torch.where(ply[:, None], pos + du, pred[t])
+        return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
+
+    def _residual(
+        self, x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise: list[Tensor]
+    ) -> Tensor:
+        args = (x_dict, index_dict, e_dict, prev_disp, mask_dict)
+        if self._network is not None:
+            try:
+                network = functools.partial(self._network, slots_dict=slots)
+                draw = iter(noise).__next__
+                return self.surrogate.residual_from_features(*args, network=network, draw=draw).float()
+            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
+                self._fall_back(err)
+        network = functools.partial(self.surrogate.model, slots_dict=slots)
+        return self.surrogate.residual_from_features(
+            *args, network=network, draw=iter(noise).__next__
+        ).float()
