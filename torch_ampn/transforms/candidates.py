@@ -207,7 +207,8 @@ class ContactCandidates:
         backend: Search backend (see :func:`~torch_ampn.transforms.component_radius_table`).
         mode: ``"dense"``, ``"verlet"``, ``"search"`` (no candidates: a plain search at every
             call) or ``"auto"`` (dense up to :attr:`DENSE_LIMIT` distances per step, else
-            verlet; see the module docs).
+            search: on the coarse default mesh the Verlet check fails too often to pay, see
+            ``benchmarks/README.md``).
 
     Attributes:
         searches: How many searches ran (the first included).
@@ -215,7 +216,7 @@ class ContactCandidates:
     """
 
     #: Largest ``N * (C - 1) * P`` for which ``mode="auto"`` takes the dense candidates.
-    DENSE_LIMIT = 1 << 23
+    DENSE_LIMIT = 1 << 18
 
     def __init__(
         self,
@@ -248,7 +249,7 @@ class ContactCandidates:
         largest = int(torch.bincount(group, minlength=self.num_groups).max()) if group.numel() else 0
         if mode == "auto":
             work = group.numel() * (self.num_components - 1) * largest
-            mode = "dense" if work <= self.DENSE_LIMIT else "verlet"
+            mode = "dense" if work <= self.DENSE_LIMIT else "search"
         self.mode = mode
         self.searches = 0
         self.state: CandidateState | None = None
