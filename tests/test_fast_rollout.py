@@ -214,3 +214,34 @@ def test_fast_rollout_refuses_another_mesh(long_run, hierarchy):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fast([long_run[0]], num_steps=2)  # no generator: the default one, no warning
+
+
+def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hierarchy, tmp_path):
+    from torch_ampn.fast_rollout import rollout_settings
+    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training.items import RolloutItem
+
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy)
+    trajs = [long_run[0], long_run[1], long_run[1]]
+    out = rollout_settings(s, trajs, hierarchy, batch_size=2, compile=False)  # batches of 2, 1 (padded)
+    for i, one in enumerate(trajs):
+        ref = FastRollout(s, hierarchy, compile=False)([one], [torch.Generator().manual_seed(i)])[0]
+        torch.testing.assert_close(out[i], ref, atol=1e-5, rtol=0)
+    # the module's predict_step: a list of items is one batch, the same as item by item
+    args = dict(hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1,
+                post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1, output_dir=str(tmp_path),
+                num_components=s.num_components, num_grippers=s.num_grippers, export_xdmf=False)  # fmt: skip
+    module = AMPNLightningModule(**args)
+    module.surrogate.load_state_dict(s.state_dict())
+    module.surrogate.freeze_statistics()
+    module.eval()
+    items = [RolloutItem(i, f"setting{i}", t, hierarchy) for i, t in enumerate(trajs)]
+    with torch.no_grad():
+        together = module.predict_step(items, 0)
+        alone = [module.predict_step(item, 0) for item in items]
+    for a, b in zip(together, alone, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+    assert sorted(p.name for p in (tmp_path / "predict").glob("*.png")) == [
+        f"setting{i}.png" for i in range(3)
+    ]

@@ -71,6 +71,50 @@ def cached_fast_rollout(
     return runner
 
 
+def rollout_settings(
+    surrogate: AMPNSurrogate,
+    trajectories: Sequence[Trajectory],
+    hierarchy: HierarchicalData,
+    batch_size: int = 8,
+    generators: Sequence[torch.Generator | None] | None = None,
+    compile: bool = True,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+) -> list[Tensor]:
+    """Roll out many process settings of one mesh, ``batch_size`` at a time (a design study).
+
+    Args:
+        surrogate: The trained surrogate.
+        trajectories: The settings, e.g. from :func:`~torch_ampn.sim.process_trajectory` (same mesh).
+        hierarchy: The mesh's hierarchy.
+        batch_size: Settings per batch (the last batch is padded).
+        generators: One noise generator per setting (default: generators seeded 0, 1, 2, ...).
+        compile: Compile the step (see :class:`FastRollout`).
+        device: Where to run.
+        progress: Show a progress bar over the batches.
+
+    Returns:
+        One ``[T + 1, N, 3]`` position tensor per setting (CPU), in the given order; equal to
+        rolling each setting out alone with its generator.
+    """
+    trajs = list(trajectories)
+    if generators is None:
+        generators = [torch.Generator(device=device or "cpu").manual_seed(i) for i in range(len(trajs))]
+    gens = list(generators)
+    if len(gens) != len(trajs):
+        raise ValueError(f"got {len(gens)} generators for {len(trajs)} settings")
+    runner = cached_fast_rollout(surrogate, hierarchy, min(batch_size, len(trajs)), compile, device)
+    starts = range(0, len(trajs), runner.batch_size)
+    if progress:
+        from tqdm.auto import tqdm
+
+        starts = tqdm(starts, desc="settings", unit="batch")
+    out: list[Tensor] = []
+    for i in starts:
+        out.extend(runner(trajs[i : i + runner.batch_size], gens[i : i + runner.batch_size]))
+    return out
+
+
 class FastPathUnavailable(ValueError):
     """The surrogate's settings have no fast path (e.g. plain-radius contact edges)."""
 

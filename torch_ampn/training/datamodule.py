@@ -17,7 +17,7 @@ from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import generate_dataset
-from torch_ampn.training.items import EachOnceSampler, RolloutDataset, identity_collate
+from torch_ampn.training.items import EachOnceSampler, RolloutDataset, identity_collate, list_collate
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 
 
@@ -69,6 +69,8 @@ class AMPNDataModule(L.LightningDataModule):
         predict_file: Process settings to predict (JSON/YAML list).
         predict_gripper_positions: Or: one list of gripper edge fractions per setting.
         predict_gripper_forces: And: one list of gripper forces (N) per setting.
+        predict_batch_size: Settings rolled out together by ``predict`` (one batch on the fast
+            path, :class:`~torch_ampn.fast_rollout.FastRollout`; outputs per setting as with 1).
     """
 
     def __init__(
@@ -95,8 +97,11 @@ class AMPNDataModule(L.LightningDataModule):
         predict_file: str | None = None,
         predict_gripper_positions: list[list[float]] | None = None,
         predict_gripper_forces: list[list[float]] | None = None,
+        predict_batch_size: int = 1,
     ) -> None:
         super().__init__()
+        if predict_batch_size < 1:
+            raise ValueError(f"data.predict_batch_size must be >= 1, got {predict_batch_size}")
         self.save_hyperparameters()
         self.data_dir = Path(data_dir)
         self.contact = ComponentRadiusGraph(
@@ -273,8 +278,16 @@ class AMPNDataModule(L.LightningDataModule):
         return self._items("test")
 
     def predict_dataloader(self) -> TorchDataLoader:
-        """Process settings to roll out."""
-        return self._items("predict")
+        """Process settings to roll out: single items, or lists of ``predict_batch_size``."""
+        if self.hparams.predict_batch_size == 1:
+            return self._items("predict")
+        dataset = self._splits["predict"]
+        return TorchDataLoader(
+            dataset,
+            batch_size=self.hparams.predict_batch_size,
+            sampler=EachOnceSampler(dataset),
+            collate_fn=list_collate,
+        )
 
     # ---- used by the model -------------------------------------------------------------------
     def statistics_samples(self, count: int) -> list[HierarchicalData]:

@@ -62,6 +62,11 @@ def identity_collate(item: RolloutItem) -> RolloutItem:
     return item
 
 
+def list_collate(items: list[RolloutItem]) -> list[RolloutItem]:
+    """``collate_fn`` of batches of items: the list itself (picklable for worker processes)."""
+    return list(items)
+
+
 class EachOnceSampler(DistributedSampler):
     """Items ``rank, rank + world_size, ...`` of a dataset: every item exactly once over all ranks.
 
