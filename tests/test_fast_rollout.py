@@ -230,8 +230,9 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hi
         torch.testing.assert_close(out[i], ref, atol=1e-5, rtol=0)
     # the module's predict_step: a list of items is one batch, the same as item by item
     args = dict(hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1,
-                solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1, output_dir=str(tmp_path),
-                num_components=s.num_components, num_grippers=s.num_grippers, export_xdmf=False)  # fmt: skip
+                solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1,
+                output_dir=str(tmp_path), num_components=s.num_components, num_grippers=s.num_grippers,
+                export_xdmf=False)  # fmt: skip
     module = AMPNLightningModule(**args)
     module.surrogate.load_state_dict(s.state_dict())
     module.surrogate.freeze_statistics()
