@@ -19,10 +19,14 @@ test trajectories (compiled, the faster of one at a time and all at once). It wr
 ``<results>/<variant>_seed<k>.json`` atomically when it is complete; a rerun skips finished
 cells, and a fit that was stopped resumes from its ``last.ckpt``. ``--report`` builds the
 table (printed, ``table.md``, ``table.json``) and the figures from whatever cells exist.
+``--timings`` times every variant's rollout (plain and fast path, from the weights a cell
+saved) and the simulator side by side on one test trajectory, writes ``timings.json``, and
+the table takes its rollout and speed-up columns from there (run it on an idle machine).
 
     python benchmarks/compare.py                             # every cell of the CPU grid (hours)
     python benchmarks/compare.py --variants ampn flat --seeds 0
     python benchmarks/compare.py --report
+    python benchmarks/compare.py --timings                   # side-by-side rollout times
     python benchmarks/compare.py --resolution paper --device cuda --steps 20000   # the GPU grid
 """
 
@@ -38,6 +42,7 @@ import math
 import os
 import platform
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -307,6 +312,65 @@ def run_cell(
     return result
 
 
+# ---- side-by-side timings -------------------------------------------------------------------------
+def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
+    """Rollout time of every variant and the simulator's, side by side in one run (``--timings``).
+
+    The cells' own rollout times come from whatever else ran on the machine during their
+    test; this pass times one test trajectory per variant (the weights of its first seed
+    with a saved ``.ckpt``) on the plain and the fast path, median of ``--repeats``, and the
+    compiled simulator making the same trajectory, one after the other on an idle machine.
+    Writes ``timings.json``; the report then takes its rollout and speed-up columns from it.
+    """
+    from torch_ampn.data import TrajectoryDataset
+    from torch_ampn.sim import StampFormingConfig, simulate_batch
+    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training.datamodule import AMPNDataModule
+
+    spec = json.loads((args.data_dir / "dataset.json").read_text())
+    cfg = StampFormingConfig.from_dict(spec["simulator"])
+    traj = next(iter(TrajectoryDataset(args.data_dir, "test")))
+    seed = int(traj.meta["seed"])
+    compiled = args.simulator_mode == "compiled"
+    simulate_batch(cfg, [seed], compile=compiled)  # compile outside the timing
+    sim = []
+    for _ in range(args.repeats):
+        start = time.perf_counter()
+        simulate_batch(cfg, [seed], compile=compiled)
+        sim.append(time.perf_counter() - start)
+    out: dict[str, Any] = {
+        "trajectory": traj.meta.get("name", f"seed {seed}"),
+        "simulator_seconds": statistics.median(sim),
+        "variants": {},
+        "date": datetime.date.today().isoformat(),
+        "machine": _machine(args.device),
+    }
+    print(f"simulator: {out['simulator_seconds']:.2f} s", flush=True)
+    for variant in [v for v in args.variants if applicable(v, base)]:
+        ckpts = sorted(args.results.glob(f"{variant}_seed*.ckpt"))
+        if not ckpts:
+            continue
+        module = AMPNLightningModule.load_from_checkpoint(ckpts[0], map_location=args.device).eval()
+        hp = module.hparams
+        dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels)
+        item = dm._rollout_split("test")[0]
+        entry: dict[str, Any] = {"checkpoint": ckpts[0].name}
+        for path in ("plain", "fast"):
+            module.hparams.fast_rollout = path == "fast"
+            module.rollout_item(item)  # warm-up (and the fast path's compile)
+            runs = [module.rollout_item(item)[1] for _ in range(args.repeats)]
+            entry[f"{path}_seconds"] = statistics.median(runs)
+            entry[f"{path}_speedup"] = out["simulator_seconds"] / entry[f"{path}_seconds"]
+        out["variants"][variant] = entry
+        print(
+            f"{variant}: plain {entry['plain_seconds']:.2f} s, fast {entry['fast_seconds']:.2f} s "
+            f"({entry['fast_speedup']:.1f}x the simulator)",
+            flush=True,
+        )
+    _atomic_write(args.results / "timings.json", lambda p: p.write_text(json.dumps(out, indent=1)))
+    return out
+
+
 # ---- the report -------------------------------------------------------------------------------------
 def _mean_std(values: list[float]) -> tuple[float, float]:
     mean = sum(values) / len(values)
@@ -499,6 +563,15 @@ def report(args: argparse.Namespace, base: dict) -> dict[str, Any]:
     variants = [v for v in args.variants if applicable(v, base)]
     cells = {k: c for k, c in load_cells(args.results).items() if k[0] in variants and k[1] in args.seeds}
     rows = table(cells, variants, args.seeds, base)
+    timed = args.results / "timings.json"
+    if timed.exists():  # side-by-side rollout times replace the cells' own
+        measured = json.loads(timed.read_text())
+        for row in rows:
+            entry = measured["variants"].get(row["variant"])
+            if entry is not None and row.get("seeds"):
+                row["rollout_seconds"], row["speedup"] = entry["fast_seconds"], entry["fast_speedup"]
+                row["plain_rollout_seconds"] = entry["plain_seconds"]
+                row["timed"] = measured["date"]
     text = markdown(rows, args.seeds)
     print(text)
     args.results.mkdir(parents=True, exist_ok=True)
@@ -539,6 +612,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--simulator-mode", choices=["compiled", "eager"], default="compiled")
     parser.add_argument("--report", action="store_true", help="only build the table and figures")
+    parser.add_argument(
+        "--timings", action="store_true", help="time every variant's rollout and the simulator side by side"
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per path with --timings")
     parser.add_argument("--no-figures", action="store_true")
     parser.add_argument("--progress", action="store_true", help="show the fits' progress bars")
     args = parser.parse_args(argv)
@@ -554,6 +631,10 @@ def main(argv: list[str] | None = None) -> int:
     base = yaml.safe_load(args.config.read_text())
     args.data_dir = (args.data_dir or ROOT / base.get("data", {}).get("data_dir", "data/default")).resolve()
     args.steps = args.steps or int(base.get("trainer", {}).get("max_steps", 3000))
+    if args.timings:
+        timings(args, base)
+        report(args, base)
+        return 0
     if args.report:
         report(args, base)
         return 0

@@ -120,6 +120,16 @@ def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys):
     assert "radius seed 0: FAILED, no result written" in printed
     assert "1 cell(s) failed: radius_seed0" in printed
     assert not (results / "radius_seed0.json").exists()
+    # side-by-side timings from the saved weights: the table's rollout column comes from them
+    assert (results / "ampn_seed0.ckpt").is_file()
+    assert compare.main([*args, "--variants", "ampn", "--timings", "--repeats", "1", "--no-figures"]) == 0
+    timed = json.loads((results / "timings.json").read_text())
+    entry = timed["variants"]["ampn"]
+    assert entry["checkpoint"] == "ampn_seed0.ckpt"
+    assert entry["plain_seconds"] > 0 and entry["fast_seconds"] > 0
+    assert entry["fast_speedup"] == pytest.approx(timed["simulator_seconds"] / entry["fast_seconds"])
+    row = json.loads((results / "table.json").read_text())["rows"][0]
+    assert row["rollout_seconds"] == entry["fast_seconds"] and row["timed"] == timed["date"]
     # the report marks a variant without cells as missing
     assert compare.main([*args, "--variants", "ampn", "flat", "--report", "--no-figures"]) == 0
     assert "| flat MeshGraphNet (1 level) | missing |" in (results / "table.md").read_text()

@@ -251,10 +251,13 @@ class FastRollout:
         ]
         self._static_tables: list[tuple[Tensor, Tensor]] | None = None
         self.compiled = False
-        self._inputs, self._network = self._step_inputs, None
+        self._inputs, self._network, self._fused = self._step_inputs, None, None
         if compile:
-            self._inputs = torch.compile(self._step_inputs, dynamic=False)
-            self._network = torch.compile(s.model, dynamic=False)
+            if s.diffusion_steps == 1:  # the whole step in one graph
+                self._fused = torch.compile(self._step_fused, dynamic=False)
+            else:  # K network calls per step: the inputs once, the network K times
+                self._inputs = torch.compile(self._step_inputs, dynamic=False)
+                self._network = torch.compile(s.model, dynamic=False)
             self.compiled = True
 
     # ---- one step ---------------------------------------------------------------------------
@@ -311,30 +314,54 @@ class FastRollout:
                     )
         return x_dict, index_dict, e_dict, mask_dict, slots, exact
 
-    def _inputs_checked(self, *args) -> tuple[dict, dict, dict, dict, dict]:
-        """:meth:`_step_inputs`, searching the contact candidates again where they are not exact."""
+    def _step_fused(self, *args) -> tuple[Tensor, Tensor]:
+        """One step of a ``K = 1`` model: ``(residual [B N, 3], exact)``.
+
+        ``args`` as :meth:`_step_inputs`, with the noise list before ``states`` and ``tables``.
+        """
+        *inputs, noise, states, tables = args
+        x_dict, index_dict, e_dict, mask_dict, slots, exact = self._step_inputs(*inputs, states, tables)
+        network = functools.partial(self.surrogate.model, slots_dict=slots)
+        du = self.surrogate.residual_from_features(
+            x_dict, index_dict, e_dict, inputs[1], mask_dict, network=network, draw=iter(noise).__next__
+        )
+        return du.float(), exact
+
+    def _checked(self, call, *args) -> tuple:
+        """``call(*args, states, tables)``, searching the contact candidates again where not exact.
+
+        ``call`` returns a tuple whose last entry is the exactness flag (dropped here).
+        """
         pos = args[0]
         if self._static_tables is not None:
-            return self._call_inputs(*args, None, self._static_tables)[:5]
+            return call(*args, None, self._static_tables)[:-1]
         pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
         for k, cand in enumerate(self.candidates):
             if cand.state is None or cand.mode == "search":
                 cand.build(pos_l[k])
-        out = self._call_inputs(*args, [c.state for c in self.candidates], None)
-        if bool(out[5]):
-            return out[:5]
+        out = call(*args, [c.state for c in self.candidates], None)
+        if bool(out[-1]):
+            return out[:-1]
         for k, cand in enumerate(self.candidates):  # search again where the check fails
             if not bool(cand.select(pos_l[k])[2]):
                 cand.build(pos_l[k])
-        return self._call_inputs(*args, [c.state for c in self.candidates], None)[:5]
+        return call(*args, [c.state for c in self.candidates], None)[:-1]
 
     def _call_inputs(self, *args):
-        if self.compiled:
+        if self.compiled and self._fused is None:
             try:
                 return self._inputs(*args)
             except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
                 self._fall_back(err)
         return self._step_inputs(*args)
+
+    def _call_fused(self, *args):
+        if self.compiled:
+            try:
+                return self._fused(*args)
+            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
+                self._fall_back(err)
+        return self._step_fused(*args)
 
     def _fall_back(self, err: Exception) -> None:
         warnings.warn(
@@ -344,7 +371,7 @@ class FastRollout:
             stacklevel=3,
         )
         self.compiled = False
-        self._inputs, self._network = self._step_inputs, None
+        self._inputs, self._network, self._fused = self._step_inputs, None, None
 
     # ---- the rollout ------------------------------------------------------------------------
     @torch.no_grad()
@@ -434,11 +461,13 @@ class FastRollout:
             gripper_pos = pos[gripper_nodes].mean(2)  # [B, G, 3], as Trajectory.gripper_positions
             d = anchor - gripper_pos
             gripper_force = magnitude * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            x_dict, index_dict, e_dict, mask_dict, slots = self._inputs_checked(
-                pos, prev_disp, bc_disp, gripper_pos, gripper_force, fiber, pos0_l
-            )
+            inputs = (pos, prev_disp, bc_disp, gripper_pos, gripper_force, fiber, pos0_l)
             noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
-            du = self._residual(x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise)
+            if self.surrogate.diffusion_steps == 1:
+                (du,) = self._checked(self._call_fused, *inputs, noise)
+            else:
+                x_dict, index_dict, e_dict, mask_dict, slots = self._checked(self._call_inputs, *inputs)
+                du = self._residual(x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise)
             pred[t] = torch.where(ply[:, None], pos + du, pred[t])
         return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
 
