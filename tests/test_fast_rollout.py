@@ -153,6 +153,12 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
     runner = cached_fast_rollout(s, hierarchy)
     assert runner.compiled  # it did compile (no silent fallback on this machine)
+    robin = _surrogate(traj, hierarchy, diffusion_steps=3)  # K > 1: inputs and network compiled apart
+    g = torch.Generator().manual_seed(3)
+    ref = rollout(lambda d: robin.predict_residual(d, g), traj, hierarchy, robin.contact, num_steps=4)
+    out = rollout(robin, traj, hierarchy, fast=True, generator=torch.Generator().manual_seed(3), num_steps=4)
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+    assert cached_fast_rollout(robin, hierarchy).compiled
 
 
 def test_a_batch_of_settings_equals_its_settings_one_by_one(long_run, hierarchy):

@@ -127,6 +127,8 @@ class DiffusionAMPN(nn.Module):
         betas = geometric_beta_schedule(num_steps, beta_min, beta_max)  # [K] float64
         self.register_buffer("betas", betas, persistent=False)
         self.register_buffer("alphas_bar", torch.cumprod(1.0 - betas, 0), persistent=False)
+        # the same schedule as Python floats (sampling; traceable by torch.compile)
+        self._schedule = (betas.tolist(), torch.cumprod(1.0 - betas, 0).tolist())
 
     def _step_arg(self, step: Tensor) -> Tensor | None:
         return step if self.model.step_encoding is not None else None
@@ -258,7 +260,7 @@ class DiffusionAMPN(nn.Module):
 
         model = self.model if network is None else network
         x = draw() if noise is None else noise
-        betas, alphas_bar = self.betas.tolist(), self.alphas_bar.tolist()
+        betas, alphas_bar = self._schedule
         for k in range(self.num_steps - 1, -1, -1):
             step = torch.tensor(k, device=device)
             v_hat = model(
