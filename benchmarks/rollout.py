@@ -5,8 +5,8 @@ For one resolution it times, side by side in one process:
 * ``plain``: :func:`torch_ampn.rollout.rollout` with ``surrogate.predict_residual`` (eager),
   with its per-step split into contact search and predictor;
 * ``fast``: :class:`torch_ampn.fast_rollout.FastRollout` (compiled unless ``--no-compile``),
-  with its split into contact searches, step inputs (contact selection, features) and network,
-  for batch sizes ``--batch-sizes`` (settings per second);
+  with its split into contact searches and the compiled step (contact selection, features,
+  network), for batch sizes ``--batch-sizes`` (settings per second);
 * ``simulator``: the embedded simulator (``torch_ampn.sim.simulate_batch``, compiled) making
   the same trajectory: the speed-up column is its time over a rollout's;
 * the largest deviation between the two paths' positions (same noise), and the peak memory.
@@ -148,11 +148,18 @@ def time_fast(s, trajs, hierarchy, device, repeats, compile: bool) -> dict:
         pred = run()
         sync(device)
         totals.append(time.perf_counter() - start)
-    timers = {"search": [], "inputs": [], "network": []}
+    timers: dict[str, list[float]] = {"search": []}
     for c in fast.candidates:
         c.build = _timed_into(c.build, timers["search"], device)
-    fast._inputs = _timed_into(fast._inputs, timers["inputs"], device)
-    fast._residual = _timed_into(fast._residual, timers["network"], device)
+    if s.diffusion_steps == 1:  # one compiled graph: selection, features, network
+        timers["step"] = []
+        fast._fused = _timed_into(fast._fused, timers["step"], device)
+        if not fast.compiled:
+            fast._step_fused = _timed_into(fast._step_fused, timers["step"], device)
+    else:
+        timers["inputs"], timers["network"] = [], []
+        fast._inputs = _timed_into(fast._inputs, timers["inputs"], device)
+        fast._residual = _timed_into(fast._residual, timers["network"], device)
     run()
     steps = trajs[0].num_steps
     return {

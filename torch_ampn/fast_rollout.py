@@ -249,7 +249,8 @@ class FastRollout:
         self.contact_target = [
             torch.arange(b * n, device=dev).repeat_interleave(self.k * (s.num_components - 1)) for n in sizes
         ]
-        self._static_tables: list[tuple[Tensor, Tensor]] | None = None
+        self._static_contact: list[tuple[Tensor, Tensor, Tensor]] | None = None
+        self._capacity = [0] * self.num_levels  # compacted contact edges per level (see _compact)
         self.compiled = False
         self._inputs, self._network, self._fused = self._step_inputs, None, None
         if compile:
@@ -270,21 +271,29 @@ class FastRollout:
         gripper_force: Tensor,
         fiber: Tensor,
         pos0_l: list[Tensor],
-        states: list[CandidateState | DenseState] | None,
-        tables: list[tuple[Tensor, Tensor]] | None,
+        states: list[CandidateState | DenseState | None],
+        contact: list[tuple[Tensor, Tensor, Tensor] | None],
     ) -> tuple[dict, dict, dict, dict, Tensor]:
-        """Normalised features, edges and contact masks of a step, and whether the contact is exact."""
+        """Normalised features, edges and contact masks of a step, and whether the contact is exact.
+
+        Level ``k``'s contact edges are ``contact[k]`` (searched outside: edge index, validity,
+        slot table) or else selected here from ``states[k]``.
+        """
         s = self.surrogate
         pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
         exact = torch.ones((), dtype=torch.bool, device=pos.device)
-        if tables is None:
-            tables = []
-            for k in range(self.num_levels):
-                nbr, mask, ok = select_table(
-                    pos_l[k], states[k], self.radius[k], self.k, self.candidates[k].num_groups
-                )
-                tables.append((nbr, mask))
-                exact = exact & ok
+        edges = []
+        for k in range(self.num_levels):
+            if contact[k] is not None:
+                edges.append(contact[k])
+                continue
+            nbr, mask, ok = select_table(
+                pos_l[k], states[k], self.radius[k], self.k, self.candidates[k].num_groups
+            )
+            slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
+            index = torch.stack([nbr.reshape(-1), self.contact_target[k]])
+            edges.append((index, mask.reshape(-1), torch.where(mask, slot_ids, -1)))  # the table's layout
+            exact = exact & ok
         grip = gripper_features(pos, gripper_pos, gripper_force, self.batch0, s.gripper_alpha)
         x = fine_node_features(
             self.node_type, prev_disp, bc_disp, fiber, self.component, s.num_components, grip
@@ -298,13 +307,8 @@ class FastRollout:
                 edge_features(self.edges[key], pos_l[k], pos_l[k], pos0_l[k], pos0_l[k])
             )
             key = edge_type(CONTACT, k)
-            nbr, mask = tables[k]
-            index = torch.stack([nbr.reshape(-1), self.contact_target[k]])
-            index_dict[key] = index
-            e_dict[key] = s.edge_norm[CONTACT](edge_features(index, pos_l[k], pos_l[k]))
-            mask_dict[key] = mask.reshape(-1)
-            slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
-            slots[key] = torch.where(mask, slot_ids, -1)  # [N_k, k (C-1)]: the table's own layout
+            index_dict[key], mask_dict[key], slots[key] = edges[k]
+            e_dict[key] = s.edge_norm[CONTACT](edge_features(index_dict[key], pos_l[k], pos_l[k]))
             if k + 1 < self.num_levels:
                 for rel, src, dst in ((DOWN, k, k + 1), (UP, k + 1, k)):
                     key = edge_type(rel, k)
@@ -317,10 +321,10 @@ class FastRollout:
     def _step_fused(self, *args) -> tuple[Tensor, Tensor]:
         """One step of a ``K = 1`` model: ``(residual [B N, 3], exact)``.
 
-        ``args`` as :meth:`_step_inputs`, with the noise list before ``states`` and ``tables``.
+        ``args`` as :meth:`_step_inputs`, with the noise list before ``states`` and ``contact``.
         """
-        *inputs, noise, states, tables = args
-        x_dict, index_dict, e_dict, mask_dict, slots, exact = self._step_inputs(*inputs, states, tables)
+        *inputs, noise, states, contact = args
+        x_dict, index_dict, e_dict, mask_dict, slots, exact = self._step_inputs(*inputs, states, contact)
         network = functools.partial(self.surrogate.model, slots_dict=slots)
         du = self.surrogate.residual_from_features(
             x_dict, index_dict, e_dict, inputs[1], mask_dict, network=network, draw=iter(noise).__next__
@@ -328,24 +332,53 @@ class FastRollout:
         return du.float(), exact
 
     def _checked(self, call, *args) -> tuple:
-        """``call(*args, states, tables)``, searching the contact candidates again where not exact.
+        """``call(*args, states, contact)``, searching the contact candidates again where not exact.
 
-        ``call`` returns a tuple whose last entry is the exactness flag (dropped here).
+        Levels searched at every step (and the edges of the initial state) are passed as
+        compacted edge lists; the others as candidate states. ``call`` returns a tuple whose
+        last entry is the exactness flag (dropped here).
         """
         pos = args[0]
-        if self._static_tables is not None:
-            return call(*args, None, self._static_tables)[:-1]
+        if self._static_contact is not None:
+            return call(*args, [None] * self.num_levels, self._static_contact)[:-1]
         pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
+        contact: list[tuple[Tensor, Tensor, Tensor] | None] = [None] * self.num_levels
         for k, cand in enumerate(self.candidates):
             if cand.state is None or cand.mode == "search":
                 cand.build(pos_l[k])
-        out = call(*args, [c.state for c in self.candidates], None)
+            if cand.mode == "search":
+                contact[k] = self._compact(k, cand.state.nbr, cand.state.mask)
+        states = [None if contact[k] is not None else c.state for k, c in enumerate(self.candidates)]
+        out = call(*args, states, contact)
         if bool(out[-1]):
             return out[:-1]
         for k, cand in enumerate(self.candidates):  # search again where the check fails
-            if not bool(cand.select(pos_l[k])[2]):
+            if contact[k] is None and not bool(cand.select(pos_l[k])[2]):
                 cand.build(pos_l[k])
-        return call(*args, [c.state for c in self.candidates], None)[:-1]
+        states = [None if contact[k] is not None else c.state for k, c in enumerate(self.candidates)]
+        return call(*args, states, contact)[:-1]
+
+    def _compact(self, level: int, nbr: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The used slots of a contact table as an edge list padded to a capacity, and its slot table.
+
+        The capacity (a multiple of 1024, a quarter above the largest count seen) changes
+        rarely, so the compiled step keeps its shapes; padding edges are masked self-loops.
+        """
+        used = mask.reshape(-1)
+        count = int(used.sum())
+        if count > self._capacity[level]:
+            self._capacity[level] = -(-int(count * 1.25) // 1024) * 1024
+        cap = self._capacity[level]
+        ids = used.nonzero().squeeze(1)  # row-major: by target, then slot
+        pad = cap - count
+        rows = self.contact_target[level]
+        source = torch.cat([nbr.reshape(-1)[ids], rows.new_zeros(pad)])
+        target = torch.cat([rows[ids], rows.new_zeros(pad)])
+        valid = torch.cat([torch.ones(count, dtype=torch.bool, device=used.device),
+                           torch.zeros(pad, dtype=torch.bool, device=used.device)])  # fmt: skip
+        position = torch.cumsum(used.long(), 0) - 1  # index of each used slot in the edge list
+        slots = torch.where(mask, position.view(mask.shape), -1)
+        return torch.stack([source, target]), valid, slots
 
     def _call_inputs(self, *args):
         if self.compiled and self._fused is None:
@@ -417,25 +450,19 @@ class FastRollout:
         gripper_nodes = torch.stack(
             [t.gripper_nodes.to(dev) + i * n for i, t in enumerate(trajs)]
         )  # [B, G, m]
-        anchor = torch.stack([t.gripper_anchor.to(dev) for t in trajs]).to(pred_dtype := torch.float32)
-        magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).to(pred_dtype)[
-            ..., None
-        ]  # [B, G, 1]
+        anchor = torch.stack([t.gripper_anchor.to(dev) for t in trajs]).float()  # [B, G, 3]
+        magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).float()[..., None]  # [B, G, 1]
         fiber = torch.cat([t.fiber.to(dev).float() for t in trajs])  # [B N, 3]
         pos0_l = [tool_path[0][idx] for idx in self.fine_index]
         if self.static_contact:  # ROBIN's edges: from the initial state, once per rollout
-            self._static_tables = [
-                component_radius_table(
-                    pos0_l[k],
-                    self.level_component[k],
-                    self.radius[k],
-                    self.k,
-                    num_components=self.surrogate.num_components,
-                    batch=cand.batch,
+            self._static_contact = []
+            for k, cand in enumerate(self.candidates):
+                nbr, mask = component_radius_table(
+                    pos0_l[k], self.level_component[k], self.radius[k], self.k,
+                    num_components=self.surrogate.num_components, batch=cand.batch,
                     backend=self.surrogate.contact.backend,
                 )  # fmt: skip
-                for k, cand in enumerate(self.candidates)
-            ]
+                self._static_contact.append(self._compact(k, nbr, mask))
         ply = self.ply
         pred = tool_path.clone()  # [T+1, B N, 3]: tools on their path, plies predicted
         pred[1:, ply] = pred[0, ply]
