@@ -252,8 +252,9 @@ timeout --kill-after=10 "$data_limit" bash "$self" --stage data > "$OUT_DIR/data
 data_pid=$!
 echo "[gpu.sh] data (timeout ${data_limit} s) in the background ..."
 run_stage cuda_tests 60 cuda_tests
-run_stage rollout_paper 75 rollout rollout_paper
-run_stage rollout_paper_x4 90 rollout rollout_paper_x4 --mesh-scale 4
+# 50 steps, plain vs fast (compiled; + bf16 autocast at paper size); the simulator is a CPU code, left out
+run_stage rollout_paper 120 rollout rollout_paper --batch-sizes 1 --bf16 --no-simulator
+run_stage rollout_paper_x4 90 rollout rollout_paper_x4 --mesh-scale 4 --batch-sizes 1 --repeats 2 --no-simulator
 wait "$data_pid"
 record data $? $((SECONDS - data_start)) "$OUT_DIR/data.log"
 run_stage fit 150 fit
