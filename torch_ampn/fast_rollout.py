@@ -254,11 +254,13 @@ class FastRollout:
         self.compiled = False
         self._inputs, self._network, self._fused = self._step_inputs, None, None
         if compile:
+            # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
+            mode = "reduce-overhead" if self.device.type == "cuda" else None
             if s.diffusion_steps == 1:  # the whole step in one graph
-                self._fused = torch.compile(self._step_fused, dynamic=False)
+                self._fused = torch.compile(self._step_fused, dynamic=False, mode=mode)
             else:  # K network calls per step: the inputs once, the network K times
-                self._inputs = torch.compile(self._step_inputs, dynamic=False)
-                self._network = torch.compile(s.model, dynamic=False)
+                self._inputs = torch.compile(self._step_inputs, dynamic=False, mode=mode)
+                self._network = torch.compile(s.model, dynamic=False, mode=mode)
             self.compiled = True
 
     # ---- one step ---------------------------------------------------------------------------
