@@ -258,9 +258,10 @@ class FastRollout:
             mode = "reduce-overhead" if self.device.type == "cuda" else None
             if s.diffusion_steps == 1:  # the whole step in one graph
                 self._fused = torch.compile(self._step_fused, dynamic=False, mode=mode)
-            else:  # K network calls per step: the inputs once, the network K times
-                self._inputs = torch.compile(self._step_inputs, dynamic=False, mode=mode)
-                self._network = torch.compile(s.model, dynamic=False, mode=mode)
+            else:  # K network calls per step: the inputs once, the network K times (no CUDA graphs:
+                # a replay would overwrite the outputs of the other graph that are still in use)
+                self._inputs = torch.compile(self._step_inputs, dynamic=False)
+                self._network = torch.compile(s.model, dynamic=False)
             self.compiled = True
 
     # ---- one step ---------------------------------------------------------------------------
