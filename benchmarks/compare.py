@@ -465,11 +465,19 @@ def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
             lines.append(f"| {r['label']} | missing | | | | | 0 of {len(seeds)} |")
         else:
             missing = f" (missing {', '.join(map(str, r['missing_seeds']))})" if r["missing_seeds"] else ""
+            mark = "" if r.get("timed") else "*"  # * : the cell's own test time (machine shared)
             lines.append(
-                f"| {r['label']} | {r['rmse']:.2f} ± {r['rmse_std']:.2f} | {r['rollout_seconds']:.2f} "
-                f"| {r['speedup']:.1f}x | {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
+                f"| {r['label']} | {r['rmse']:.2f} ± {r['rmse_std']:.2f} "
+                f"| {r['rollout_seconds']:.2f}{mark} "
+                f"| {r['speedup']:.1f}x{mark} | {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
                 f"| {r['layers']} ({r['layer_applications']}) | {len(r['seeds'])}{missing} |"
             )
+    if any("seeds" in r and r["seeds"] and not r.get("timed") for r in rows):
+        lines.append("")
+        lines.append(
+            "\\* rollout time of the cell's own test, with other jobs on the machine; the others: "
+            "`--timings`, every variant and the simulator side by side on one test trajectory."
+        )
     return "\n".join(lines) + "\n"
 
 
