@@ -469,7 +469,8 @@ def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
             lines.append(
                 f"| {r['label']} | {r['rmse']:.2f} ± {r['rmse_std']:.2f} "
                 f"| {r['rollout_seconds']:.2f}{mark} "
-                f"| {r['speedup']:.1f}x{mark} | {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
+                f"| {r['speedup']:.1f}x{mark} "
+                f"| {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
                 f"| {r['layers']} ({r['layer_applications']}) | {len(r['seeds'])}{missing} |"
             )
     if any("seeds" in r and r["seeds"] and not r.get("timed") for r in rows):
