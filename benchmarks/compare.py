@@ -354,9 +354,12 @@ def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
         hp = module.hparams
         dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels)
         item = dm._rollout_split("test")[0]
-        entry: dict[str, Any] = {"checkpoint": ckpts[0].name}
+        from torch_ampn.fast_rollout import fast_path_supported
+
+        no_fast = fast_path_supported(module.surrogate)  # e.g. plain-radius contact: the plain path
+        entry: dict[str, Any] = {"checkpoint": ckpts[0].name, "fast_path": no_fast is None}
         for path in ("plain", "fast"):
-            module.hparams.fast_rollout = path == "fast"
+            module.hparams.fast_rollout = path == "fast" and no_fast is None
             module.rollout_item(item)  # warm-up (and the fast path's compile)
             runs = [module.rollout_item(item)[1] for _ in range(args.repeats)]
             entry[f"{path}_seconds"] = statistics.median(runs)
