@@ -7,11 +7,12 @@ step. :class:`FastRollout` does the same arithmetic with fixed shapes:
 * everything that does not change during a rollout (mesh, down and up edges with their
   offsets for ``B`` settings, node types, components, fibres, the coarse features) is built
   once;
-* the contact edges of every level are the fixed-size tables of
-  :func:`~torch_ampn.transforms.component_radius_table` (every slot an edge, with a validity
-  mask), selected from candidates kept between steps
-  (:class:`~torch_ampn.transforms.candidates.ContactCandidates`), which search again only when
-  they cannot guarantee the exact table;
+* the contact edges of every level are those of
+  :func:`~torch_ampn.transforms.component_radius_table`: on small levels every slot of its
+  fixed-size table (with a validity mask), selected inside the compiled step from candidates
+  kept between steps (:class:`~torch_ampn.transforms.candidates.ContactCandidates`, which
+  search again only when they cannot guarantee the exact table); on levels searched at every
+  step the used slots, as an edge list padded to a slowly growing capacity;
 * the step (contact selection, features, normalisation) and the network are compiled with
   ``torch.compile`` (static shapes) when ``compile=True``; where compiling fails (no C++
   compiler, an unsupported device) it warns once and runs the same code eagerly;
@@ -139,7 +140,7 @@ class FastRollout:
         compile: Compile the step and the network (``torch.compile``, static shapes).
         device: Where to run (default: the surrogate's device).
         candidates: ``mode`` of :class:`~torch_ampn.transforms.candidates.ContactCandidates`
-            (``"auto"``, ``"dense"`` or ``"verlet"``).
+            (``"auto"``, ``"dense"``, ``"verlet"`` or ``"search"``), or one per level.
         skin: Verlet skin (default: the level's radius).
         capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
 
@@ -214,20 +215,18 @@ class FastRollout:
         self.slots = {
             key: incoming_slots(index, b * sizes[int(key[2][1:])]) for key, index in self.edges.items()
         }
-        # features that never change: coarse node types, initial relative positions
+        # features that never change: the coarse nodes' types (normalised at every step)
         s = surrogate
-        self.coarse_x = {
-            level_name(k): s.node_norm["coarse"](
-                torch.nn.functional.one_hot(
-                    self.node_type[self.fine_index[k]].long(), NodeType.count()
-                ).float()
-            )
+        self.coarse_types = {
+            level_name(k): torch.nn.functional.one_hot(
+                self.node_type[self.fine_index[k]].long(), NodeType.count()
+            ).float()
             for k in range(1, self.num_levels)
         }
         contact = s.contact
         self.radius = [contact.level_radius(k) for k in range(self.num_levels)]
         self.k = contact.k
-        self.static_contact = contact.positions == "initial"
+        self.initial_contact = contact.positions == "initial"  # ROBIN's edges, built once
         modes = [candidates] * self.num_levels if isinstance(candidates, str) else list(candidates)
         if len(modes) != self.num_levels:
             raise ValueError(
@@ -301,7 +300,8 @@ class FastRollout:
         x = fine_node_features(
             self.node_type, prev_disp, bc_disp, fiber, self.component, s.num_components, grip
         )
-        x_dict = {"l0": s.node_norm["fine"](x), **self.coarse_x}
+        x_dict = {"l0": s.node_norm["fine"](x)}
+        x_dict.update({lk: s.node_norm["coarse"](t) for lk, t in self.coarse_types.items()})
         index_dict, e_dict, mask_dict, slots = {}, {}, {}, dict(self.slots)
         for k in range(self.num_levels):
             key = edge_type(MESH, k)
@@ -457,7 +457,7 @@ class FastRollout:
         magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).float()[..., None]  # [B, G, 1]
         fiber = torch.cat([t.fiber.to(dev).float() for t in trajs])  # [B N, 3]
         pos0_l = [tool_path[0][idx] for idx in self.fine_index]
-        if self.static_contact:  # ROBIN's edges: from the initial state, once per rollout
+        if self.initial_contact:  # ROBIN's edges: from the initial state, once per rollout
             self._static_contact = []
             for k, cand in enumerate(self.candidates):
                 nbr, mask = component_radius_table(
