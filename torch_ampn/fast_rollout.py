@@ -276,18 +276,19 @@ class FastRollout:
         states: list[CandidateState | DenseState | None],
         contact: list[tuple[Tensor, Tensor, Tensor] | None],
     ) -> tuple[dict, dict, dict, dict, Tensor]:
-        """Normalised features, edges and contact masks of a step, and whether the contact is exact.
+        """Normalised features, edges and contact masks of a step; per level, whether its contact is exact.
 
         Level ``k``'s contact edges are ``contact[k]`` (searched outside: edge index, validity,
         slot table) or else selected here from ``states[k]``.
         """
         s = self.surrogate
         pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
-        exact = torch.ones((), dtype=torch.bool, device=pos.device)
+        exact = []  # per level: the selected table is guaranteed exact
         edges = []
         for k in range(self.num_levels):
             if contact[k] is not None:
                 edges.append(contact[k])
+                exact.append(torch.ones((), dtype=torch.bool, device=pos.device))
                 continue
             nbr, mask, ok = select_table(
                 pos_l[k], states[k], self.radius[k], self.k, self.candidates[k].num_groups
@@ -295,7 +296,7 @@ class FastRollout:
             slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
             index = torch.stack([nbr.reshape(-1), self.contact_target[k]])
             edges.append((index, mask.reshape(-1), torch.where(mask, slot_ids, -1)))  # the table's layout
-            exact = exact & ok
+            exact.append(ok)
         grip = gripper_features(pos, gripper_pos, gripper_force, self.batch0, s.gripper_alpha)
         x = fine_node_features(
             self.node_type, prev_disp, bc_disp, fiber, self.component, s.num_components, grip
@@ -319,10 +320,10 @@ class FastRollout:
                     e_dict[key] = s.edge_norm[rel](
                         edge_features(self.edges[key], pos_l[src], pos_l[dst], pos0_l[src], pos0_l[dst])
                     )
-        return x_dict, index_dict, e_dict, mask_dict, slots, exact
+        return x_dict, index_dict, e_dict, mask_dict, slots, torch.stack(exact)
 
     def _step_fused(self, *args) -> tuple[Tensor, Tensor]:
-        """One step of a ``K = 1`` model: ``(residual [B N, 3], exact)``.
+        """One step of a ``K = 1`` model: ``(residual [B N, 3], exact per level)``.
 
         ``args`` as :meth:`_step_inputs`, with the noise list before ``states`` and ``contact``.
         """
@@ -339,7 +340,7 @@ class FastRollout:
 
         Levels searched at every step (and the edges of the initial state) are passed as
         compacted edge lists; the others as candidate states. ``call`` returns a tuple whose
-        last entry is the exactness flag (dropped here).
+        last entry holds the per-level exactness flags (dropped here).
         """
         pos = args[0]
         if self._static_contact is not None:
@@ -353,10 +354,11 @@ class FastRollout:
                 contact[k] = self._compact(k, cand.state.nbr, cand.state.mask)
         states = [None if contact[k] is not None else c.state for k, c in enumerate(self.candidates)]
         out = call(*args, states, contact)
-        if bool(out[-1]):
+        exact = out[-1].tolist()  # per level
+        if all(exact):
             return out[:-1]
-        for k, cand in enumerate(self.candidates):  # search again where the check fails
-            if contact[k] is None and not bool(cand.select(pos_l[k])[2]):
+        for k, cand in enumerate(self.candidates):  # search again where the check failed
+            if not exact[k]:
                 cand.build(pos_l[k])
         states = [None if contact[k] is not None else c.state for k, c in enumerate(self.candidates)]
         return call(*args, states, contact)[:-1]
@@ -377,8 +379,7 @@ class FastRollout:
         rows = self.contact_target[level]
         source = torch.cat([nbr.reshape(-1)[ids], rows.new_zeros(pad)])
         target = torch.cat([rows[ids], rows.new_zeros(pad)])
-        valid = torch.cat([torch.ones(count, dtype=torch.bool, device=used.device),
-                           torch.zeros(pad, dtype=torch.bool, device=used.device)])  # fmt: skip
+        valid = torch.arange(cap, device=used.device) < count
         position = torch.cumsum(used.long(), 0) - 1  # index of each used slot in the edge list
         slots = torch.where(mask, position.view(mask.shape), -1)
         return torch.stack([source, target]), valid, slots
