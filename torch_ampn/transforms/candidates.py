@@ -92,10 +92,13 @@ def select_dense(pos: Tensor, state: DenseState, r: float, k: int) -> tuple[Tens
     n = pos.size(0)
     p = pos.double()  # [N, 3]
     width, num_comp = state.members.size(1), state.num_components
-    member_pos = p[state.members].view(-1, num_comp, width, 3)[state.batch]  # [N, C, P, 3]
     valid = state.valid.view(-1, num_comp, width)[state.batch]  # [N, C, P]
-    d = member_pos - p[:, None, None, :]
-    d2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
+    # coordinate by coordinate: every term is contiguous in the members (vectorised when compiled)
+    d2 = None
+    for axis in p.unbind(dim=1):  # [N] each
+        member = axis[state.members].view(-1, num_comp, width)[state.batch]  # [N, C, P]
+        term = (member - axis[:, None, None]).square()
+        d2 = term if d2 is None else d2 + term
     d2 = torch.where(valid, d2, math.inf)  # [N, C, P]
     slots = torch.arange(width, device=pos.device)
     picked, picked_d2 = [], []
