@@ -4,20 +4,27 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader as TorchDataLoader
-from torch_geometric.loader import DataLoader
 
 from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, split_files
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import generate_dataset
-from torch_ampn.training.items import EachOnceSampler, RolloutDataset, identity_collate, list_collate
+from torch_ampn.training.items import (
+    EachOnceSampler,
+    ResumableLoader,
+    ResumableShuffleSampler,
+    RolloutDataset,
+    identity_collate,
+    list_collate,
+)
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 
 
@@ -71,6 +78,10 @@ class AMPNDataModule(L.LightningDataModule):
         predict_gripper_forces: And: one list of gripper forces (N) per setting.
         predict_batch_size: Settings rolled out together by ``predict`` (one batch on the fast
             path, :class:`~torch_ampn.fast_rollout.FastRollout`; outputs per setting as with 1).
+        shuffle_seed: Seed of the training windows' order (a permutation per epoch, see
+            :class:`~torch_ampn.training.items.ResumableShuffleSampler`); ``None``: the fit's
+            ``seed_everything`` value (0 without one). A fit resumed from a checkpoint continues
+            the stopped epoch's order where it stopped.
     """
 
     def __init__(
@@ -98,6 +109,7 @@ class AMPNDataModule(L.LightningDataModule):
         predict_gripper_positions: list[list[float]] | None = None,
         predict_gripper_forces: list[list[float]] | None = None,
         predict_batch_size: int = 1,
+        shuffle_seed: int | None = None,
     ) -> None:
         super().__init__()
         if predict_batch_size < 1:
@@ -251,17 +263,25 @@ class AMPNDataModule(L.LightningDataModule):
         return settings, source
 
     # ---- dataloaders ----------------------------------------------------------------------------
-    def train_dataloader(self) -> DataLoader:
+    def train_dataloader(self) -> ResumableLoader:
         """Shuffled training windows (PyG batches of :class:`HierarchicalData`)."""
         assert self.train_dataset is not None, "call setup('fit') first"
         workers = self.hparams.num_workers
-        return DataLoader(
+        seed = self.hparams.shuffle_seed
+        if seed is None:  # the fit's seed_everything value, the same on every rank
+            seed = int(os.environ.get("PL_GLOBAL_SEED", 0))
+        sampler = ResumableShuffleSampler(self.train_dataset, self.hparams.batch_size, seed=seed)
+        return ResumableLoader(
             self.train_dataset,
-            batch_size=self.hparams.batch_size,
-            shuffle=True,
+            sampler,
+            self._batches_trained,
             num_workers=workers,
             persistent_workers=workers > 0,
         )
+
+    def _batches_trained(self) -> int:
+        trainer = self.trainer
+        return 0 if trainer is None else trainer.global_step * trainer.accumulate_grad_batches
 
     def _items(self, split: str) -> TorchDataLoader:
         dataset = self._splits[split]

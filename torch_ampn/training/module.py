@@ -219,19 +219,26 @@ class AMPNLightningModule(L.LightningModule):
         if torch.cuda.is_available() and torch.cuda.is_initialized():
             checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Restore the generators' states; rebuild the surrogate of checkpoints from before ``mlp_channels``.
-
-        Those checkpoints' layer MLPs were ``hidden_channels`` wide (the default then); Lightning
-        calls this hook after building the module from the checkpoint's hyper-parameters and
-        before loading its weights, so the surrogate is rebuilt with that width here.
-        """
-        states = checkpoint.get("rng_states", {})
+    def on_train_start(self) -> None:
+        """Restore the random generators' states of a resumed fit (see :meth:`on_load_checkpoint`)."""
+        states = getattr(self, "_rng_states_to_restore", None) or {}
+        object.__setattr__(self, "_rng_states_to_restore", None)
         if "torch" in states:
             torch.set_rng_state(states["torch"])
         cuda = torch.cuda.is_available() and len(states.get("cuda", ())) == torch.cuda.device_count()
         if "cuda" in states and cuda:
             torch.cuda.set_rng_state_all(states["cuda"])
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep the generators' states for :meth:`on_train_start`; rebuild the surrogate of old checkpoints.
+
+        Those checkpoints' layer MLPs were ``hidden_channels`` wide (the default then); Lightning
+        calls this hook after building the module from the checkpoint's hyper-parameters and
+        before loading its weights, so the surrogate is rebuilt with that width here.
+        """
+        # applied when training starts: Lightning draws from the generator in between (a new
+        # training-loader iterator takes a worker seed), which the stopped run had done before
+        object.__setattr__(self, "_rng_states_to_restore", checkpoint.get("rng_states", {}))
         saved = checkpoint.get("hyper_parameters", {})
         if "mlp_channels" in saved or self.hparams.mlp_channels == self.hparams.hidden_channels:
             return
