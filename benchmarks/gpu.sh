@@ -9,12 +9,13 @@
 #               version, CUDA availability and device name
 #   cuda_tests  pytest tests -k "cuda or gpu": the tests parametrised over CUDA or marked gpu
 #   rollout     benchmarks/rollout.py --device cuda --resolution paper, and with --mesh-scale 4
+#   simulator   benchmarks/simulate.py --device cuda: paper-resolution trajectories, 8 at once, compiled
 #   data        a small paper-resolution dataset (4 / 1 / 1 trajectories), in the background while
 #               the stages above run (CPU only: 6 processes, nice 10)
 #   fit         200 steps of examples/configs/paper.yaml on that dataset on the GPU, no validation;
 #               a callback times every training step (CUDA synchronised): fit_step_times.json
 # --cpu-check: install skipped if .venv is set up; the CUDA tests skip; rollout.py --device cpu
-# --resolution coarse --quick; a coarse dataset of 2 / 1 / 0 trajectories; a 5-step fit on the CPU
+# --resolution coarse --quick; simulate.py on the CPU, coarse, 2 at once, eager; a coarse dataset of 2 / 1 / 0 trajectories; a 5-step fit on the CPU
 # (paper.yaml with --model.num_levels 3: the coarse mesh has 3 levels).
 #
 # Logs, results and summary.txt go to ${OUT:-benchmarks/results/gpu} (--cpu-check:
@@ -61,6 +62,16 @@ stage_rollout() {  # stage_rollout NAME [extra rollout.py flags]
         python benchmarks/rollout.py --device cpu --resolution coarse --quick --out "$OUT_DIR/$name" "$@"
     else
         python benchmarks/rollout.py --device cuda --resolution paper --out "$OUT_DIR/$name" "$@"
+    fi
+}
+
+stage_simulator() {
+    activate
+    if [ "$MODE" = cpu ]; then
+        python benchmarks/simulate.py --resolutions coarse --batch 2 --modes eager --out "$OUT_DIR/simulate.json"
+    else
+        python benchmarks/simulate.py --device cuda --resolutions paper --batch 8 --modes compiled \
+            --out "$OUT_DIR/simulate_cuda.json"
     fi
 }
 
@@ -252,9 +263,10 @@ timeout --kill-after=10 "$data_limit" bash "$self" --stage data > "$OUT_DIR/data
 data_pid=$!
 echo "[gpu.sh] data (timeout ${data_limit} s) in the background ..."
 run_stage cuda_tests 60 cuda_tests
-# 50 steps, plain vs fast (compiled; + bf16 autocast at paper size); the simulator is a CPU code, left out
+# 50 steps, plain vs fast (compiled; + bf16 autocast at paper size); the simulator on its own stage
 run_stage rollout_paper 120 rollout rollout_paper --batch-sizes 1 --bf16 --no-simulator
 run_stage rollout_paper_x4 90 rollout rollout_paper_x4 --mesh-scale 4 --batch-sizes 1 --repeats 2 --no-simulator
+run_stage simulator 75 simulator
 wait "$data_pid"
 record data $? $((SECONDS - data_start)) "$OUT_DIR/data.log"
 run_stage fit 150 fit

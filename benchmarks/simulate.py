@@ -1,17 +1,22 @@
 """Benchmark: seconds per trajectory of the embedded simulator, coarse and paper resolution.
 
     python benchmarks/simulate.py --out benchmarks/results/simulate_cpu.json
+    python benchmarks/simulate.py --device cuda --resolutions paper --batch 8 32 --modes compiled \\
+        --out benchmarks/results/simulate_cuda.json                        # on a GPU
 
 For each resolution, simulates ``--batch`` trajectories at once, eager and compiled, and
 prints seconds per trajectory. Compiled runs are done twice: the first includes
 ``torch.compile``'s work, the second finds inductor's on-disk cache warm (what a dataset
-generation with many batches sees).
+generation with many batches sees). The cost of a trajectory is its number of explicit
+sub-steps (process duration over the stable time step), whatever the number of saved steps.
+Writes JSON atomically after every row.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -21,68 +26,69 @@ import torch
 from torch_ampn.sim import StampFormingConfig, simulate_batch
 
 
-def timed(cfg: StampFormingConfig, batch: int, compile_: bool) -> tuple[float, int, int]:
+def timed(cfg: StampFormingConfig, batch: int, compile_: bool, device: str) -> tuple[float, int, int]:
     t0 = time.perf_counter()
-    trajs = simulate_batch(cfg, list(range(batch)), compile=compile_)
+    trajs = simulate_batch(cfg, list(range(batch)), compile=compile_, device=device)  # CPU results: synced
     return time.perf_counter() - t0, trajs[0].num_nodes, trajs[0].meta["substeps"]
 
 
+def write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2))
+    os.replace(tmp, path)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    raw = argparse.RawDescriptionHelpFormatter
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=raw)
     parser.add_argument("--resolutions", nargs="+", default=["coarse", "paper"])
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 4])
     parser.add_argument("--modes", nargs="+", default=["eager", "compiled"])
+    parser.add_argument("--device", default="cpu", help="where the solver runs (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/simulate_cpu.json"))
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-
-    rows = []
     meta = dict(
         benchmark="simulate",
+        date=time.strftime("%Y-%m-%d"),
         machine=platform.machine(),
+        device=torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "cpu",
         threads=torch.get_num_threads(),
         torch=torch.__version__,
     )
+    rows = []
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for res in args.resolutions:
         cfg = StampFormingConfig.paper() if res == "paper" else StampFormingConfig()
         for batch in args.batch:
             for mode in args.modes:
                 compile_ = mode == "compiled"
-                first = None
-                if compile_:
-                    first, _, _ = timed(cfg, batch, True)
-                seconds, nodes, substeps = timed(cfg, batch, compile_)
-                row = dict(
-                    resolution=res,
-                    nodes=nodes,
-                    batch=batch,
-                    mode=mode,
-                    substeps_per_step=substeps,
-                    seconds_total=seconds,
-                    seconds_per_trajectory=seconds / batch,
-                    first_run_seconds_per_trajectory=None if first is None else first / batch,
+                first = timed(cfg, batch, True, args.device)[0] if compile_ else None
+                seconds, nodes, substeps = timed(cfg, batch, compile_, args.device)
+                per_traj = seconds / batch
+                rows.append(
+                    dict(
+                        resolution=res,
+                        nodes=nodes,
+                        batch=batch,
+                        mode=mode,
+                        device=args.device,
+                        substeps_per_step=substeps,
+                        seconds_total=seconds,
+                        seconds_per_trajectory=per_traj,
+                        first_run_seconds_per_trajectory=None if first is None else first / batch,
+                    )
                 )
-                rows.append(row)
-                args.out.write_text(json.dumps(dict(meta=meta, results=rows), indent=2))  # after every row
+                write_json(args.out, dict(meta=meta, results=rows))
                 print(
-                    f"{res:>6} {nodes:>6} nodes  batch {batch}  {mode:>8}: {seconds / batch:7.2f} s/traj."
+                    f"{res:>6} {nodes:>6} nodes  batch {batch:>3}  {mode:>8} on {args.device}: "
+                    f"{per_traj:7.2f} s/trajectory"
                     f"  ({substeps} sub-steps per saved step"
                     f"{f'; first run {first / batch:.2f} s/trajectory' if compile_ else ''})",
                     flush=True,
                 )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    meta = dict(
-        benchmark="simulate",
-        machine=platform.machine(),
-        threads=torch.get_num_threads(),
-        torch=torch.__version__,
-    )
-    args.out.write_text(json.dumps(dict(meta=meta, results=rows), indent=2))
     print(f"wrote {args.out}")
 
 

@@ -54,7 +54,7 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(data_cli, "generate_dataset", fake)
     argv = ["generate", "--out", str(tmp_path), "--num-train", "1", "--num-val", "0", "--num-test", "0"]
     assert data_cli.main([*argv, "--workers", "1", "--batch", "2", "--no-compile"]) == 0
-    assert calls == [(tmp_path, (1, 0, 0, "coarse", 1, 2), {"compile": False})]
+    assert calls == [(tmp_path, (1, 0, 0, "coarse", 1, 2), {"compile": False, "device": "cpu"})]
     assert f"1 trajectories in {tmp_path}" in capsys.readouterr().out
 
     def refuse(*args, **kwargs):
@@ -66,7 +66,7 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
 
 
 def test_convert_and_export_commands(tmp_path, capsys):
-    traj = dataset_module._simulate_chunk((TINY.to_dict(), [("train", 7)], [True], str(tmp_path), False))
+    traj = dataset_module._simulate_chunk((TINY.to_dict(), [("train", 7)], [True], str(tmp_path), False, "cpu"))
     src = tmp_path / "train" / "traj_000007.pt"
     assert traj == [str(src)]
     assert data_cli.main(["export", str(src), "--out", str(tmp_path / "x" / "t.xdmf")]) == 0
@@ -118,3 +118,12 @@ def test_check_summarises_a_dataset_and_names_its_problems(tmp_path, capsys):
     assert "2 problem(s)" in captured.out
     assert data_cli.main(["check", str(tmp_path / "empty")]) == 1
     assert "no trajectory files" in capsys.readouterr().err
+
+
+def test_generate_refuses_a_device_it_cannot_use_in_one_line(tmp_path, capsys):
+    cases = ["nonsense"] + ([] if torch.cuda.is_available() else ["cuda"])
+    for device in cases:
+        assert data_cli.main(["generate", "--out", str(tmp_path / "ds"), "--device", device]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("torch-ampn-data: error: --device") and "\n" not in err, err
+    assert not (tmp_path / "ds").exists()  # refused before anything was written

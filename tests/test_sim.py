@@ -11,6 +11,7 @@ from torch_ampn.data import NodeType
 from torch_ampn.sim import StampFormingConfig, simulate, simulate_batch
 from torch_ampn.sim.geometry import die_surface, punch_surface
 from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
+from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 
 CFG = StampFormingConfig(ply_cells=10, punch_cells=(8, 8), die_cells=(9, 9))
 
@@ -103,7 +104,7 @@ def test_motion_stays_bounded(runs):
 
 
 def test_same_seed_same_output_and_grippers_matter(runs):
-    alone = simulate(CFG, seed=0)
+    alone = simulate(CFG, seed=0, device="cpu")
     assert torch.equal(alone.pos, runs[0].pos)  # batching does not change a trajectory
     ply = runs[0].ply_mask
     diff = (runs[0].pos[-1, ply] - runs[1].pos[-1, ply]).norm(dim=-1)
@@ -111,6 +112,30 @@ def test_same_seed_same_output_and_grippers_matter(runs):
     assert not torch.equal(runs[0].gripper_force, runs[1].gripper_force)
     f0, f1 = runs[0].gripper_force, runs[1].gripper_force
     assert ((f0 >= 0) & (f0 <= 100) & (f1 >= 0) & (f1 <= 100)).all()
+
+
+def test_a_solver_step_runs_where_the_model_is():
+    """Every tensor a step uses follows ``LaminateModel.to``: a step on the meta device (shapes only)
+    fails with a device mismatch if one is made on the CPU inside the step."""
+    mesh = build_mesh(CFG)
+    model = LaminateModel(CFG, mesh, [sample_process(CFG, 0), sample_process(CFG, 1)]).to("meta")
+    for part in (model, model.membrane, model.bending):
+        assert all(v.device.type == "meta" for v in vars(part).values() if isinstance(v, torch.Tensor))
+    x, v = model.x0.clone(), torch.zeros_like(model.x0)
+    model.refresh_pairs(x)
+    travel = torch.tensor(1.0, dtype=x.dtype, device=x.device)
+    x, v = model.step_function()(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+    assert x.device.type == "meta" and x.shape == (2 * model.n, 3) and v.shape == x.shape
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
+def test_the_simulator_on_cuda_follows_the_cpu_run():
+    cfg = StampFormingConfig.from_dict({**CFG.to_dict(), "num_steps": 4})
+    cpu, gpu = simulate(cfg, seed=0), simulate(cfg, seed=0, device="cuda")
+    assert gpu.pos.device.type == "cpu" and gpu.pos.shape == cpu.pos.shape
+    assert torch.equal(gpu.pos[0], cpu.pos[0])
+    # float64 in another summation order: equal to far below the mesh's scale over a few steps
+    assert (gpu.pos - cpu.pos).abs().max() < 1e-3
 
 
 def test_trajectory_is_valid_and_round_trips(runs, tmp_path):

@@ -2,6 +2,7 @@
 
     torch-ampn-data generate --out data/default --num-train 32 --num-val 4 --num-test 4
     torch-ampn-data generate --out data/paper --resolution paper --num-train 684 --shard 3/16  # job 3 of 16
+    torch-ampn-data generate --out data/paper --resolution paper --device cuda --batch 32    # on a GPU
     torch-ampn-data check data/default
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
@@ -16,6 +17,8 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+import torch
 
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.dataset import generate_dataset
@@ -44,6 +47,17 @@ def _check(root: Path) -> int:
     return 1 if problems else 0
 
 
+def _device(name: str) -> str:
+    """``name`` if torch can run there, else ``ValueError`` with the reason."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"--device: {err}") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine")
+    return name
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``torch-ampn-data``."""
     parser = argparse.ArgumentParser(prog="torch-ampn-data", description=__doc__.split("\n")[0])
@@ -54,9 +68,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     g.add_argument("--num-val", type=int, default=4)
     g.add_argument("--num-test", type=int, default=4)
     g.add_argument("--resolution", choices=["coarse", "paper"], default="coarse")
-    g.add_argument("--workers", type=int, default=None, help="processes (default: CPU cores)")
+    g.add_argument("--workers", type=int, default=None, help="processes (default: CPU cores; 1 on a GPU)")
     g.add_argument("--batch", type=int, default=4, help="trajectories simulated together per process")
     g.add_argument("--no-compile", action="store_true", help="do not torch.compile the solver step")
+    g.add_argument("--device", default="cpu", help="where the solver runs, e.g. cuda (default: cpu)")
     g.add_argument(
         "--shard", type=_shard, default=None, metavar="I/N", help="make only part I of N (0 <= I < N)"
     )
@@ -80,6 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.workers,
                 args.batch,
                 compile=not args.no_compile,
+                device=_device(args.device),
                 **({"shard": args.shard} if args.shard else {}),
             )
             print(f"{len(paths)} trajectories in {args.out}")

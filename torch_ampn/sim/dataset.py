@@ -35,12 +35,12 @@ def _is_valid(path: Path) -> bool:
     return True
 
 
-def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], list[bool], str, bool]) -> list[str]:
+def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], list[bool], str, bool, str]) -> list[str]:
     """Worker: simulate a chunk of (split, seed) jobs together and save the trajectories asked for."""
-    cfg_dict, jobs, write, root, compile_ = args
+    cfg_dict, jobs, write, root, compile_, device = args
     torch.set_num_threads(1)
     cfg = StampFormingConfig.from_dict(cfg_dict)
-    trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_)
+    trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
     out = []
     for (split, seed), traj, wanted in zip(jobs, trajs, write, strict=True):
         if wanted:
@@ -62,6 +62,7 @@ def generate_dataset(
     progress: bool = True,
     config: StampFormingConfig | None = None,
     shard: tuple[int, int] | None = None,
+    device: torch.device | str = "cpu",
 ) -> list[Path]:
     """Simulate the missing trajectories of a dataset (existing valid files are kept).
 
@@ -78,12 +79,14 @@ def generate_dataset(
         num_val: Trajectories in the val split (seeds ``100000 ..``).
         num_test: Trajectories in the test split (seeds ``200000 ..``).
         resolution: ``"coarse"`` (default settings) or ``"paper"`` (3,200 triangles per ply).
-        workers: Processes (default: CPU cores).
-        batch: Trajectories simulated together in one process.
+        workers: Processes (default: CPU cores; one on a GPU).
+        batch: Trajectories simulated together in one process (on a GPU: as many as fit).
         compile: ``torch.compile`` the solver step.
         progress: Show a progress bar.
         config: Explicit simulator settings (overrides ``resolution``).
         shard: ``(i, n)``: make only the ``i``-th of ``n`` disjoint parts (``0 <= i < n``).
+        device: Where the solver runs (``"cuda"``: on a GPU); the trajectories' last bits
+            depend on it, as they do on the batch.
 
     Returns:
         The paths of the trajectories of the dataset (of the shard's part with ``shard``).
@@ -121,6 +124,9 @@ def generate_dataset(
     missing = {job for job in wanted if not _is_valid(trajectory_path(out, *job))}
     chunks = [chunk for chunk in chunks if missing.intersection(chunk)]
     todo = [job for job in wanted if job in missing]
+    device = str(device)
+    if workers is None and torch.device(device).type != "cpu":
+        workers = 1  # one process per GPU: a batch of trajectories fills it better than processes
     workers = max(1, min(workers or os.cpu_count() or 1, len(chunks) or 1))
     bar = None
     if progress:
@@ -128,7 +134,8 @@ def generate_dataset(
 
         bar = tqdm(total=len(todo), desc="generate", unit="traj")
         bar.write(f"{len(wanted) - len(todo)} of {len(wanted)} trajectories exist; simulating {len(todo)}")
-    jobs = [(cfg.to_dict(), chunk, [job in missing for job in chunk], str(out), compile) for chunk in chunks]
+    settings = cfg.to_dict()
+    jobs = [(settings, c, [job in missing for job in c], str(out), compile, device) for c in chunks]
     if workers == 1:
         results = map(_simulate_chunk, jobs)
         for done in results:

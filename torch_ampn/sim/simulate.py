@@ -176,6 +176,18 @@ class LaminateModel:
         self.friction_cap = 0.25 * self.mass / self.dt  # [Bn, 1]
         self.pair_friction_cap = torch.zeros_like(self.pairs_upper, dtype=torch.float64)[:, None]
 
+    def to(self, device: torch.device | str) -> LaminateModel:
+        """Move the solver's tensors (this model's, the membrane's and the bending's) to ``device``.
+
+        The per-copy gripper layouts (``gripper_nodes``, ``anchors``) stay on the CPU: they
+        describe the trajectories, the solver uses ``gripper_index`` and ``gripper_anchor``.
+        """
+        for part in (self, self.membrane, self.bending):
+            for name, value in vars(part).items():
+                if isinstance(value, Tensor):
+                    setattr(part, name, value.to(device))
+        return self
+
     def stiffness_bound(self) -> Tensor:
         """A per-node upper bound of the stiffness (N/mm), for the mass scaling, ``[Bn]``."""
         cfg, tris, x0 = self.cfg, self.tris, self.x0
@@ -222,7 +234,7 @@ class LaminateModel:
         f_c, f_n, normal = height_field_contact(
             x, punch_z, punch_grad, -1.0, self.punch_offset, cfg.contact_stiffness
         )
-        v_rel = v + torch.tensor([0.0, 0.0, punch_speed], dtype=v.dtype)  # the punch moves along -e3
+        v_rel = v + torch.tensor([0.0, 0.0, punch_speed], dtype=v.dtype, device=v.device)  # punch along -e3
         f = (
             f
             + f_c
@@ -259,7 +271,7 @@ class LaminateModel:
         inv_mass_dt = self.dt / self.mass  # [Bn, 1]
         damp_free = self.free / (1.0 + self.cfg.damping * self.dt)  # [Bn, 3]
         speed, dt = self.cfg.stroke / self.cfg.duration, self.dt
-        lower = torch.tensor([0.0, 0.0, -math.inf], dtype=self.x0.dtype)  # material stays in x1, x2 >= 0
+        lower = torch.tensor([0.0, 0.0, -math.inf], dtype=self.x0.dtype, device=self.x0.device)  # x1, x2 >= 0
 
         def step(
             x: Tensor, v: Tensor, travel: Tensor, pairs_lower: Tensor, pair_cap: Tensor
@@ -391,6 +403,7 @@ def simulate_batch(
     seeds: Sequence[int] = (0,),
     progress: bool = False,
     compile: bool = False,
+    device: torch.device | str = "cpu",
 ) -> list[Trajectory]:
     """Simulate one process per seed, all at once, and return their trajectories.
 
@@ -405,10 +418,13 @@ def simulate_batch(
         progress: Show a progress bar over the saved steps.
         compile: Run the sub-step through ``torch.compile`` (costs a few seconds once per
             process; several times faster afterwards).
+        device: Where the solver runs (e.g. ``"cuda"``: worth it for many trajectories at
+            once or fine meshes); the set-up and the returned trajectories are on the CPU.
+            Another device gives other last bits, which the forming amplifies.
 
     Returns:
         One :class:`~torch_ampn.data.Trajectory` per seed, each with ``num_steps + 1``
-        saved states of plies, punch and die (float32).
+        saved states of plies, punch and die (float32, CPU).
     """
     cfg = config or StampFormingConfig()
     cfg.validate()
@@ -416,7 +432,7 @@ def simulate_batch(
         raise ValueError("simulate_batch needs at least one seed")
     processes = [sample_process(cfg, int(s)) for s in seeds]
     mesh = build_mesh(cfg)
-    model = LaminateModel(cfg, mesh, processes)
+    model = LaminateModel(cfg, mesh, processes).to(device)
     step = model.step_function(compile)
     n, copies = model.n, model.copies
     x, v = model.x0.clone(), torch.zeros_like(model.x0)
@@ -430,12 +446,12 @@ def simulate_batch(
         model.refresh_pairs(x)
         for sub in range(model.substeps):
             t = ((k - 1) * model.substeps + sub + 1) * model.dt
-            travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype)
+            travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype, device=x.device)
             x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
         if not torch.isfinite(x).all():
             raise FloatingPointError(f"simulation diverged at step {k} (seeds {list(seeds)})")
         frames.append(x.clone())
-    ply_frames = torch.stack(frames).view(cfg.num_steps + 1, copies, n, 3)
+    ply_frames = torch.stack(frames).cpu().view(cfg.num_steps + 1, copies, n, 3)
 
     times, tool_frames = _tool_motion(cfg, mesh, n)
     fiber = _fiber_directions(cfg, mesh, n)
@@ -462,7 +478,11 @@ def simulate_batch(
 
 
 def simulate(
-    config: StampFormingConfig | None = None, seed: int = 0, progress: bool = False, compile: bool = False
+    config: StampFormingConfig | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    compile: bool = False,
+    device: torch.device | str = "cpu",
 ) -> Trajectory:
     """Simulate one stamp-forming process (see :func:`simulate_batch`)."""
-    return simulate_batch(config, [seed], progress=progress, compile=compile)[0]
+    return simulate_batch(config, [seed], progress=progress, compile=compile, device=device)[0]
