@@ -89,6 +89,8 @@ def _cases(tmp: Path) -> list[tuple[str, object]]:
          trajectory("fiber.pt", lambda d: d.update(fiber=torch.zeros(5, 3)))),
         ("dataset with other component / gripper counts than the model",
          lambda: AMPNDataModule(str(data), generate=False).check_model(model)),
+        ("trajectories of another mesh than the model's (test, validate)",
+         lambda: AMPNDataModule(str(data), generate=False).check_meshes({"0" * 64: 1670}, "train")),
         ("an output folder that cannot be written",
          lambda: _check_writable(tmp / "file" / "out", "model.output_dir")),
         ("simulator settings with an unknown key",

@@ -17,7 +17,7 @@ pytest.importorskip("lightning")
 import lightning as L  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
-from torch_ampn.data import NodeType, step_sample  # noqa: E402
+from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
 from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
@@ -417,6 +417,28 @@ def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
     args += ["--data.min_coarse_nodes", "4"]
     args += ["--model.output_dir", str(out / "reports"), "--trainer.default_root_dir", str(out)]
     return [subcommand, *args, *extra]  # given later, ``extra`` wins
+
+
+def test_test_and_predict_refuse_another_mesh_unless_told(data_dir, tmp_path, small_sim):
+    """A checkpoint records its training meshes; test/predict on another mesh stop with the file's name."""
+    config, out = _config(tmp_path, data_dir)
+    main(["fit", "--config", str(config), "--trainer.max_steps", "2"])
+    ckpt = out / "ckpt" / "last.ckpt"
+    meshes = torch.load(ckpt, weights_only=True)["training_meshes"]
+    assert list(meshes.values()) == [Trajectory.load(next((data_dir / "train").glob("*.pt"))).num_nodes]
+
+    other = tmp_path / "other"  # the same components and grippers on a finer mesh
+    finer = StampFormingConfig.from_dict({**small_sim.to_dict(), "ply_cells": small_sim.ply_cells + 1})
+    generate_dataset(other, 0, 0, 1, config=finer, workers=1, compile=False, progress=False)
+    first = sorted((other / "test").glob("*.pt"))[0]
+    with pytest.raises(ValueError, match=f"{first}: its mesh .* is not one the model was trained on"):
+        main(_from_checkpoint("test", ckpt, other, out))
+    with pytest.raises(ValueError, match=f"{other / 'dataset.json'}: the simulator settings make mesh"):
+        main(_from_checkpoint("predict", ckpt, other, out, "--data.predict_gripper_positions", "[[0.5, 0.5]]",
+                              "--data.predict_gripper_forces", "[[10, 10]]"))  # fmt: skip
+    main(_from_checkpoint("test", ckpt, other, out, "--model.check_mesh", "false"))  # told: it runs
+    assert any((out / "reports").rglob("test_summary.json"))
+    main(_from_checkpoint("test", ckpt, data_dir, out))  # its own mesh: no complaint
 
 
 def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):

@@ -40,6 +40,7 @@ RUNTIME_OPTIONS = (
     "touch_radii",
     "compile_network",
     "fast_rollout",
+    "check_mesh",
 )
 
 

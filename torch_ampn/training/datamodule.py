@@ -12,7 +12,14 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader as TorchDataLoader
 
-from torch_ampn.data.dataset import HierarchyCache, StepDataset, TrajectoryDataset, split_files
+from torch_ampn.data.dataset import (
+    HierarchyCache,
+    StepDataset,
+    TrajectoryDataset,
+    file_topology_key,
+    split_files,
+    topology_key,
+)
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
@@ -316,6 +323,49 @@ class AMPNDataModule(L.LightningDataModule):
         n = len(self.train_dataset)
         stride = max(1, math.ceil(n / max(count, 1)))
         return (self.train_dataset[i] for i in range(0, n, stride))  # type: ignore[return-value]
+
+    def mesh_keys(self, split: str) -> dict[str, int]:
+        """Topology keys (:func:`~torch_ampn.data.dataset.topology_key`) -> node counts of a split's meshes.
+
+        Trajectory files are memory-mapped, only their cells read; ``"predict"`` gives the
+        mesh of the dataset's simulator settings (``dataset.json``).
+        """
+        if split == "predict":
+            items = self._splits.get("predict")
+            if not items:
+                return {}
+            traj = items[0].trajectory
+            return {topology_key(traj): traj.num_nodes}
+        return dict(file_topology_key(f) for f in split_files(self.data_dir, split))
+
+    def check_meshes(self, known: dict[str, int], split: str) -> None:
+        """``ValueError`` naming the first file of ``split`` whose mesh is not among ``known``.
+
+        ``known``: topology key -> node count of the meshes a model was trained on.
+        """
+        if not known:
+            return
+        if split == "predict":
+            keys = self.mesh_keys("predict")
+            unknown = [(self.data_dir / "dataset.json", n) for key, n in keys.items() if key not in known]
+        else:
+            found = (
+                (path, *file_topology_key(path))
+                for path in split_files(self.data_dir, split)[: self._split_size(split)]
+            )
+            unknown = [(path, n) for path, key, n in found if key not in known]
+        if unknown:
+            path, nodes = unknown[0]
+            sizes = ", ".join(f"{n:,}" for n in sorted(set(known.values())))
+            what = "the simulator settings make" if split == "predict" else "its"
+            raise ValueError(
+                f"{path}: {what} mesh ({nodes:,} nodes) is not one the model was trained on "
+                f"(meshes of {sizes} nodes); set model.check_mesh false to roll it out anyway"
+            )
+
+    def _split_size(self, split: str) -> int | None:
+        items = self._splits.get(split)
+        return len(items) if items is not None else None
 
     def check_model(self, surrogate: torch.nn.Module) -> None:
         """Raise a clear error if the model's component/gripper counts do not match the data."""

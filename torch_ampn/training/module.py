@@ -145,6 +145,9 @@ class AMPNLightningModule(L.LightningModule):
             order, compiled once per mesh); ``False``: the plain path of
             :func:`~torch_ampn.rollout.rollout`. Contact settings without a fast path
             (``contact_mode="radius"``) take the plain path with a warning.
+        check_mesh: Refuse to validate, test or predict (outside ``fit``) trajectories whose
+            mesh is not one of the training split's (the checkpoint records them), with a
+            message naming the file; ``False`` for a model meant for other parts.
     """
 
     def __init__(
@@ -184,6 +187,7 @@ class AMPNLightningModule(L.LightningModule):
         export_xdmf: bool = True,
         compile_network: bool = False,
         fast_rollout: bool = True,
+        check_mesh: bool = True,
     ) -> None:
         super().__init__()
         if not 0.0 <= pushforward <= 1.0:
@@ -195,6 +199,8 @@ class AMPNLightningModule(L.LightningModule):
         # module tree (plain attribute) so that state_dict keys and weight averaging do not see it.
         # None: not built yet; False: eager (compile off or failed).
         object.__setattr__(self, "_compiled_network", None if compile_network else False)
+        # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
+        self._training_meshes: dict[str, int] | None = None
 
     # ---- set-up --------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -208,6 +214,8 @@ class AMPNLightningModule(L.LightningModule):
                     _check_writable(Path(folder), name)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
+        if stage == "fit" and datamodule is not None and hasattr(datamodule, "mesh_keys"):
+            self._training_meshes = datamodule.mesh_keys("train")
         if stage == "fit" and not self.surrogate.statistics_frozen:
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
@@ -216,6 +224,8 @@ class AMPNLightningModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the random number generators' states, so that a resumed fit draws what it would have."""
         checkpoint["rng_states"] = {"torch": torch.get_rng_state()}
+        if self._training_meshes is not None:
+            checkpoint["training_meshes"] = dict(self._training_meshes)
         if torch.cuda.is_available() and torch.cuda.is_initialized():
             checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
@@ -239,6 +249,8 @@ class AMPNLightningModule(L.LightningModule):
         # applied when training starts: Lightning draws from the generator in between (a new
         # training-loader iterator takes a worker seed), which the stopped run had done before
         object.__setattr__(self, "_rng_states_to_restore", checkpoint.get("rng_states", {}))
+        if checkpoint.get("training_meshes") is not None:  # older checkpoints: no mesh check
+            self._training_meshes = {str(k): int(v) for k, v in checkpoint["training_meshes"].items()}
         saved = checkpoint.get("hyper_parameters", {})
         if "mlp_channels" in saved or self.hparams.mlp_channels == self.hparams.hidden_channels:
             return
@@ -412,8 +424,18 @@ class AMPNLightningModule(L.LightningModule):
             )
         return pred, time.perf_counter() - start
 
+    def _check_meshes(self, split: str) -> None:
+        """With ``check_mesh``: ``ValueError`` if a trajectory of ``split`` has a mesh not trained on."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if not (self.hparams.get("check_mesh", True) and self._training_meshes):
+            return
+        if hasattr(datamodule, "check_meshes"):
+            datamodule.check_meshes(self._training_meshes, split)
+
     def on_validation_epoch_start(self) -> None:
-        """Start collecting the validation trajectories' RMSE."""
+        """Start collecting the validation trajectories' RMSE (outside ``fit``: check their meshes first)."""
+        if not self.trainer.training and self.trainer.state.fn != "fit":
+            self._check_meshes("val")
         self._val_rmse: dict[str, float] = {}
 
     def validation_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
@@ -432,7 +454,8 @@ class AMPNLightningModule(L.LightningModule):
             self.log("val/rollout_rmse", sum(merged.values()) / len(merged), prog_bar=True, batch_size=1)
 
     def on_test_epoch_start(self) -> None:
-        """Start a new test report."""
+        """Check the test trajectories' meshes; start a new test report."""
+        self._check_meshes("test")
         self._report = TestReport(self.output_dir())
 
     def test_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
@@ -458,6 +481,10 @@ class AMPNLightningModule(L.LightningModule):
             self._report.merge(parts)
             summary = self._report.finish()
             self.log_dict({f"test/{k}": float(v) for k, v in summary.items()}, rank_zero_only=True)
+
+    def on_predict_epoch_start(self) -> None:
+        """Check that the process settings' mesh is one the model was trained on."""
+        self._check_meshes("predict")
 
     def predict_step(self, item: RolloutItem | list[RolloutItem], batch_idx: int) -> Tensor | list[Tensor]:
         """Rollout of new process settings: writes XDMF and a PNG each; returns positions ``[T+1, N, 3]``.
