@@ -128,10 +128,10 @@ def time_plain(s, traj, hierarchy, device, repeats) -> dict:
     }  # fmt: skip
 
 
-def time_fast(s, trajs, hierarchy, device, repeats, compile: bool) -> dict:
+def time_fast(s, trajs, hierarchy, device, repeats, compile: bool, candidates: str = "auto") -> dict:
     b = len(trajs)
     start = time.perf_counter()
-    fast = FastRollout(s, hierarchy, batch_size=b, compile=compile, device=device)
+    fast = FastRollout(s, hierarchy, batch_size=b, compile=compile, device=device, candidates=candidates)
     gens = [torch.Generator(device=device) for _ in range(b)]
 
     def run():
@@ -228,7 +228,7 @@ def run(args: argparse.Namespace) -> dict:
     for b in args.batch_sizes:
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        fast = time_fast(s, trajs[:b], hierarchy, device, args.repeats, compile=not args.no_compile)
+        fast = time_fast(s, trajs[:b], hierarchy, device, args.repeats, not args.no_compile, args.candidates)
         entry = {k: v for k, v in fast.items() if k != "pred"}
         entry["settings_per_second"] = b / fast["seconds"]
         entry["peak_memory_mb"] = peak_memory_mb(device)
@@ -236,7 +236,9 @@ def run(args: argparse.Namespace) -> dict:
             entry["max_deviation_mm"] = float((fast["pred"][0] - plain["pred"]).abs().max())
         if args.bf16 and b == 1 and device.type == "cuda":
             with torch.autocast("cuda", dtype=torch.bfloat16):
-                bf = time_fast(s, trajs[:1], hierarchy, device, args.repeats, compile=not args.no_compile)
+                bf = time_fast(
+                    s, trajs[:1], hierarchy, device, args.repeats, not args.no_compile, args.candidates
+                )
             deviation = float((bf["pred"][0] - plain["pred"]).abs().max())
             entry["bf16"] = {"seconds": bf["seconds"], "max_deviation_mm": deviation}
         result["fast"][str(b)] = entry
@@ -291,6 +293,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-compile", action="store_true", help="the fast path without torch.compile")
+    parser.add_argument(
+        "--candidates",
+        default="auto",
+        choices=["auto", "dense", "patches", "verlet", "search"],
+        help="contact candidates of every level (FastRollout's candidates)",
+    )
     parser.add_argument("--bf16", action="store_true", help="also the fast path under bf16 autocast (CUDA)")
     parser.add_argument("--no-simulator", action="store_true")
     parser.add_argument(

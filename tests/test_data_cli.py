@@ -66,7 +66,8 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
 
 
 def test_convert_and_export_commands(tmp_path, capsys):
-    traj = dataset_module._simulate_chunk((TINY.to_dict(), [("train", 7)], [True], str(tmp_path), False, "cpu"))
+    job = (TINY.to_dict(), [("train", 7)], [True], str(tmp_path), False, "cpu")
+    traj = dataset_module._simulate_chunk(job)
     src = tmp_path / "train" / "traj_000007.pt"
     assert traj == [str(src)]
     assert data_cli.main(["export", str(src), "--out", str(tmp_path / "x" / "t.xdmf")]) == 0

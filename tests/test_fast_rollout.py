@@ -25,7 +25,7 @@ def _walk(steps: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.cat([pos0[None], pos0[None] + walk]), torch.arange(3).repeat_interleave(40)
 
 
-@pytest.mark.parametrize("mode", ["dense", "verlet", "search"])
+@pytest.mark.parametrize("mode", ["dense", "patches", "verlet", "search"])
 @pytest.mark.parametrize("k", [1, 3])
 def test_candidates_give_the_searched_table_at_every_step(mode, k):
     pos, comp = _walk(30, seed=k)
@@ -39,7 +39,7 @@ def test_candidates_give_the_searched_table_at_every_step(mode, k):
         assert torch.equal(nbr, ref_nbr) and torch.equal(mask, ref_mask), t
     if mode == "verlet":  # the small skin forces searches, but not one per step
         assert 1 < cand.searches < pos.size(0)
-    if mode == "dense":
+    if mode in ("dense", "patches"):  # the patches of t = 0 hold: never searched again
         assert cand.searches == 1
 
 
@@ -64,6 +64,33 @@ def test_candidate_check_fails_when_a_far_node_comes_close():
     assert not cand.select(moved)[2]
     nbr, mask = cand(moved)  # searches again
     assert nbr[0].tolist() == [2] and mask[0].tolist() == [True] and cand.searches == 2
+
+
+def test_patch_candidates_are_exact_or_say_so():
+    """Hand case: cells of edge r = 1, so every node below is a patch of its own.
+
+    Node 0 reaches one patch of component 1 at the first call, so 1 + 2 (the margin) are
+    kept. Three nodes of component 1 moving next to it still fit; a fourth does not, and the
+    selection must say so (``__call__`` then cuts new patches)."""
+    pos = torch.tensor([[0.5, 0.5, 0.0], [0.5, 0.5, 0.3], [1.5, 0.5, 0.3], [5.5, 0.5, 0.3], [8.5, 0.5, 0.3]])
+    comp = torch.tensor([0, 1, 1, 1, 1])
+    cand = ContactCandidates(comp, 1.0, 1, mode="patches")
+    state = cand.build(pos)
+    assert state.members.size(0) == 5 and state.capacity == 3
+    nbr, mask, exact = cand.select(pos)
+    assert exact and nbr[0].tolist() == [1] and mask[0].tolist() == [True]
+    assert nbr[1].tolist() == [0] and not mask[2]  # node 2 is 1.04 from node 0: beyond r
+    moved = pos.clone()
+    moved[2:4, 0] = torch.tensor([0.2, 0.9])  # two more nodes of component 1 next to node 0
+    nbr, mask, exact = cand.select(moved)
+    ref = component_radius_table(moved, comp, 1.0, 1)
+    assert exact and torch.equal(nbr, ref[0]) and torch.equal(mask, ref[1])
+    moved[4, 0] = 0.6  # the fourth patch within reach: more than the 3 kept
+    assert not cand.select(moved)[2]
+    nbr, mask = cand(moved)  # new patches, cut at these positions
+    ref = component_radius_table(moved, comp, 1.0, 1)
+    assert torch.equal(nbr, ref[0]) and torch.equal(mask, ref[1]) and cand.searches == 2
+    assert cand.select(moved)[2]
 
 
 # ---- slot aggregation ------------------------------------------------------------------------
@@ -133,7 +160,9 @@ def hierarchy(long_run):
     return HierarchyCache(None, max_levels=3, min_coarse_nodes=4)(long_run[0])
 
 
-@pytest.mark.parametrize("candidates", ["auto", ("search", "verlet", "dense")])
+@pytest.mark.parametrize(
+    "candidates", ["auto", ("search", "verlet", "dense"), ("patches", "patches", "dense")]
+)
 def test_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, candidates):
     traj = long_run[0]
     s = _surrogate(traj, hierarchy)

@@ -39,7 +39,13 @@ from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.nn._conv import incoming_slots
 from torch_ampn.nn.features import edge_features, fine_node_features, gripper_features
 from torch_ampn.nn.surrogate import AMPNSurrogate
-from torch_ampn.transforms.candidates import CandidateState, ContactCandidates, DenseState, select_table
+from torch_ampn.transforms.candidates import (
+    CandidateState,
+    ContactCandidates,
+    DenseState,
+    PatchState,
+    select_table,
+)
 from torch_ampn.transforms.radius import component_radius_table
 
 #: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
@@ -140,7 +146,7 @@ class FastRollout:
         compile: Compile the step and the network (``torch.compile``, static shapes).
         device: Where to run (default: the surrogate's device).
         candidates: ``mode`` of :class:`~torch_ampn.transforms.candidates.ContactCandidates`
-            (``"auto"``, ``"dense"``, ``"verlet"`` or ``"search"``), or one per level.
+            (``"auto"``, ``"dense"``, ``"patches"``, ``"verlet"`` or ``"search"``), or one per level.
         skin: Verlet skin (default: the level's radius).
         capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
 
@@ -273,7 +279,7 @@ class FastRollout:
         gripper_force: Tensor,
         fiber: Tensor,
         pos0_l: list[Tensor],
-        states: list[CandidateState | DenseState | None],
+        states: list[CandidateState | DenseState | PatchState | None],
         contact: list[tuple[Tensor, Tensor, Tensor] | None],
     ) -> tuple[dict, dict, dict, dict, Tensor]:
         """Normalised features, edges and contact masks of a step; per level, whether its contact is exact.
