@@ -3,6 +3,7 @@
     torch-ampn-data generate --out data/default --num-train 32 --num-val 4 --num-test 4
     torch-ampn-data generate --out data/paper --resolution paper --num-train 684 --shard 3/16  # job 3 of 16
     torch-ampn-data generate --out data/paper --resolution paper --device cuda --batch 32    # on a GPU
+    torch-ampn-data generate --out data/family --family default    # every trajectory its own part
     torch-ampn-data check data/default
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
@@ -14,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,6 +24,7 @@ import torch
 
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.dataset import generate_dataset
+from torch_ampn.sim.family import PartFamily
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -45,6 +48,29 @@ def _check(root: Path) -> int:
         print(f"problem: {line}", file=sys.stderr)
     print(f"{root}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
     return 1 if problems else 0
+
+
+def _family(spec: str | None) -> PartFamily | None:
+    """``None``, the default family, or the family of a YAML/JSON file (``ValueError`` naming the file)."""
+    if spec is None:
+        return None
+    if spec == "default":
+        return PartFamily()
+    path = Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"--family {spec}: no such file (or 'default')")
+    try:
+        if path.suffix == ".json":
+            values = json.loads(path.read_text())
+        else:
+            import yaml  # PyYAML comes with the train extra
+
+            values = yaml.safe_load(path.read_text())
+        return PartFamily.from_dict(values or {})
+    except ImportError as err:
+        raise ValueError(f"{path}: reading YAML needs PyYAML (pip install pyyaml); or give JSON") from err
+    except Exception as err:  # noqa: BLE001 - a parse or settings error: one line naming the file
+        raise ValueError(f"{path}: not a family of parts ({' '.join(str(err).split())})") from err
 
 
 def _device(name: str) -> str:
@@ -73,6 +99,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     g.add_argument("--no-compile", action="store_true", help="do not torch.compile the solver step")
     g.add_argument("--device", default="cpu", help="where the solver runs, e.g. cuda (default: cpu)")
     g.add_argument(
+        "--family",
+        default=None,
+        metavar="FILE|default",
+        help="a family of parts: every trajectory its own tool geometry and ply stack, sampled from the "
+        "ranges of a YAML/JSON file of PartFamily settings, or 'default' (torch_ampn.sim.family)",
+    )
+    g.add_argument(
         "--shard", type=_shard, default=None, metavar="I/N", help="make only part I of N (0 <= I < N)"
     )
     k = sub.add_parser("check", help="load every trajectory of a dataset folder and summarise it")
@@ -96,6 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.batch,
                 compile=not args.no_compile,
                 device=_device(args.device),
+                family=_family(args.family),
                 **({"shard": args.shard} if args.shard else {}),
             )
             print(f"{len(paths)} trajectories in {args.out}")

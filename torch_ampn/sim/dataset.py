@@ -17,6 +17,7 @@ import torch
 
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.config import StampFormingConfig
+from torch_ampn.sim.family import PartFamily, part_config, sample_part
 from torch_ampn.sim.simulate import simulate_batch
 
 SPLIT_SEED_OFFSET = {"train": 0, "val": 100_000, "test": 200_000}
@@ -35,14 +36,20 @@ def _is_valid(path: Path) -> bool:
     return True
 
 
-def _simulate_chunk(args: tuple[dict, list[tuple[str, int]], list[bool], str, bool, str]) -> list[str]:
-    """Worker: simulate a chunk of (split, seed) jobs together and save the trajectories asked for."""
-    cfg_dict, jobs, write, root, compile_, device = args
+def _simulate_chunk(args: tuple) -> list[str]:
+    """Worker: simulate a chunk of (split, seed) jobs together and save the trajectories asked for.
+
+    ``args``: ``(config dict, jobs, which to write, root, compile, device[, part])``; a
+    family's chunk is one job, whose ``part`` goes into the trajectory's ``meta["part"]``.
+    """
+    cfg_dict, jobs, write, root, compile_, device, *part = args
     torch.set_num_threads(1)
     cfg = StampFormingConfig.from_dict(cfg_dict)
     trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
     out = []
     for (split, seed), traj, wanted in zip(jobs, trajs, write, strict=True):
+        if part and part[0] is not None:
+            traj.meta["part"] = dict(part[0])
         if wanted:
             path = trajectory_path(Path(root), split, seed)
             traj.save(path)
@@ -63,6 +70,7 @@ def generate_dataset(
     config: StampFormingConfig | None = None,
     shard: tuple[int, int] | None = None,
     device: torch.device | str = "cpu",
+    family: PartFamily | None = None,
 ) -> list[Path]:
     """Simulate the missing trajectories of a dataset (existing valid files are kept).
 
@@ -87,6 +95,10 @@ def generate_dataset(
         shard: ``(i, n)``: make only the ``i``-th of ``n`` disjoint parts (``0 <= i < n``).
         device: Where the solver runs (``"cuda"``: on a GPU); the trajectories' last bits
             depend on it, as they do on the batch.
+        family: A family of parts (:mod:`torch_ampn.sim.family`): every trajectory gets the
+            part :func:`~torch_ampn.sim.family.sample_part` draws for its seed, on top of
+            ``config`` (or ``resolution``), simulated alone (its own mesh), its part in
+            ``meta["part"]``; ``dataset.json`` records the family.
 
     Returns:
         The paths of the trajectories of the dataset (of the shard's part with ``shard``).
@@ -103,11 +115,16 @@ def generate_dataset(
     cfg = config or (StampFormingConfig.paper() if resolution == "paper" else StampFormingConfig())
     out.mkdir(parents=True, exist_ok=True)
     spec_path = out / "dataset.json"
-    spec = json.loads(json.dumps(dict(resolution=resolution, simulator=cfg.to_dict())))
+    spec = dict(resolution=resolution, simulator=cfg.to_dict())
+    if family is not None:
+        family.validate()
+        spec["family"] = family.to_dict()
+    spec = json.loads(json.dumps(spec))
     if spec_path.exists():
         old = json.loads(spec_path.read_text())
-        if old.get("simulator") != spec["simulator"]:
-            raise ValueError(f"{spec_path}: the folder holds a dataset made with other simulator settings")
+        if old.get("simulator") != spec["simulator"] or old.get("family") != spec.get("family"):
+            what = "simulator settings" if old.get("simulator") != spec["simulator"] else "family of parts"
+            raise ValueError(f"{spec_path}: the folder holds a dataset made with another {what}")
     tmp = spec_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(spec, indent=2))
     os.replace(tmp, spec_path)
@@ -117,6 +134,8 @@ def generate_dataset(
         for split, count in (("train", num_train), ("val", num_val), ("test", num_test))
         for i in range(count)
     ]
+    if family is not None:
+        batch = 1  # every trajectory its own part, so its own mesh
     chunks = [wanted[i : i + batch] for i in range(0, len(wanted), batch)][index::count]
     wanted = [job for chunk in chunks for job in chunk]
     # a chunk with a missing trajectory is simulated whole (its batch is its batch); only the
@@ -135,7 +154,11 @@ def generate_dataset(
         bar = tqdm(total=len(todo), desc="generate", unit="traj")
         bar.write(f"{len(wanted) - len(todo)} of {len(wanted)} trajectories exist; simulating {len(todo)}")
     settings = cfg.to_dict()
-    jobs = [(settings, c, [job in missing for job in c], str(out), compile, device) for c in chunks]
+    jobs = []
+    for c in chunks:
+        part = sample_part(family, c[0][1]) if family is not None else None
+        chunk_settings = part_config(cfg, part).to_dict() if part is not None else settings
+        jobs.append((chunk_settings, c, [job in missing for job in c], str(out), compile, device, part))
     if workers == 1:
         results = map(_simulate_chunk, jobs)
         for done in results:
