@@ -174,6 +174,15 @@ def test_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, candidates):
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
 
 
+def test_fast_rollout_of_a_stack_encoded_model_with_spare_components(long_run, hierarchy):
+    """``component_encoding="stack"`` and more components than the mesh has (a family's model)."""
+    traj = long_run[0]
+    s = _surrogate(traj, hierarchy, component_encoding="stack", num_components=8)
+    ref = _plain(s, traj, hierarchy)
+    out = FastRollout(s, hierarchy, compile=False)([traj], [torch.Generator().manual_seed(3)])[0]
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+
+
 def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
     traj = long_run[0]
     s = _surrogate(traj, hierarchy)

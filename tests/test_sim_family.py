@@ -4,10 +4,19 @@ import json
 
 import pytest
 import torch
+from torch_geometric.data import Batch
 
 from torch_ampn import data_cli
-from torch_ampn.data import Trajectory
-from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset, part_config, sample_part
+from torch_ampn.data import HierarchyCache, NodeType, Trajectory, step_sample
+from torch_ampn.nn import AMPNSurrogate, component_features
+from torch_ampn.sim import (
+    PartFamily,
+    StampFormingConfig,
+    generate_dataset,
+    part_config,
+    sample_part,
+    simulate,
+)
 from torch_ampn.sim.geometry import die_surface
 from torch_ampn.sim.simulate import sample_process
 
@@ -101,3 +110,53 @@ def test_the_data_cli_makes_a_family_dataset_and_refuses_a_bad_family_file(tmp_p
     (path,) = sorted((out / "train").glob("*.pt"))
     part = Trajectory.load(path).meta["part"]
     assert part["shape"] == "single_dome" and len(part["ply_angles"]) == 2
+
+
+def test_the_stack_encoding_counts_plies_per_graph_and_ignores_tool_numbering():
+    ply, punch, die = NodeType.PLY, NodeType.PUNCH, NodeType.DIE
+    # graph 0: plies 0, 1 and tools 2, 3; graph 1: plies 0, 1, 2 and tools 3, 4
+    component = torch.tensor([0, 1, 2, 3, 0, 1, 2, 3, 4])
+    node_type = torch.tensor([ply, ply, punch, die, ply, ply, ply, punch, die])
+    batch = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1, 1])
+    stack = component_features(component, node_type, 5, "stack", batch)
+    expected = [[0, 1], [1, 0], [0, 0], [0, 0], [0, 2], [1, 1], [2, 0], [0, 0], [0, 0]]
+    assert stack.tolist() == [[float(v) for v in row] for row in expected]
+    swapped = component.clone()  # the tools numbered the other way round: the same features
+    swapped[[2, 3, 7, 8]] = torch.tensor([3, 2, 4, 3])
+    assert torch.equal(component_features(swapped, node_type, 5, "stack", batch), stack)
+    assert not torch.equal(
+        component_features(swapped, node_type, 5, "onehot"), component_features(component, node_type, 5)
+    )
+    alone = component_features(component[4:], node_type[4:], 5, "stack")  # graph 1 on its own
+    assert torch.equal(alone, stack[4:])
+
+
+def test_a_batch_of_parts_with_other_ply_counts_equals_the_single_predictions():
+    family = PartFamily(num_plies=(2, 3))
+    seeds = [s for s in range(20) if len(sample_part(family, s)["ply_angles"]) in (2, 3)]
+    two = next(s for s in seeds if len(sample_part(family, s)["ply_angles"]) == 2)
+    three = next(s for s in seeds if len(sample_part(family, s)["ply_angles"]) == 3)
+    cache = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)
+    surrogate = AMPNSurrogate(
+        num_components=5, num_levels=2, hidden_channels=8, mlp_channels=8, pre_layers=1,
+        down_layers=1, solve_layers=1, post_layers=1, up_layers=1, contact_radius=40.0, contact_k=1,
+        component_encoding="stack",
+    )  # fmt: skip
+    windows = []
+    for seed in (two, three):
+        traj = simulate(part_config(TINY, sample_part(family, seed)), seed=seed)
+        windows.append(surrogate.contact(step_sample(traj, 2, cache(traj))))
+        surrogate.accumulate_statistics(windows[-1])
+    surrogate.freeze_statistics()
+    assert windows[0]["l0"].num_nodes != windows[1]["l0"].num_nodes  # two meshes
+    noise = [torch.randn(w["l0"].num_nodes, 3, generator=torch.Generator().manual_seed(7)) for w in windows]
+
+    def predict(data, draws):
+        x, index, e = surrogate.normalized_features(data)
+        it = iter(draws)
+        return surrogate.residual_from_features(x, index, e, data["l0"].prev_disp, draw=lambda: next(it))
+
+    with torch.no_grad():
+        single = [predict(w, [n]) for w, n in zip(windows, noise, strict=True)]
+        batched = predict(Batch.from_data_list(windows), [torch.cat(noise)])
+    torch.testing.assert_close(batched, torch.cat(single), atol=1e-5, rtol=1e-5)

@@ -305,7 +305,15 @@ class FastRollout:
             exact.append(ok)
         grip = gripper_features(pos, gripper_pos, gripper_force, self.batch0, s.gripper_alpha)
         x = fine_node_features(
-            self.node_type, prev_disp, bc_disp, fiber, self.component, s.num_components, grip
+            self.node_type,
+            prev_disp,
+            bc_disp,
+            fiber,
+            self.component,
+            s.num_components,
+            grip,
+            s.component_encoding,
+            self.batch0,
         )
         x_dict = {"l0": s.node_norm["fine"](x)}
         x_dict.update({lk: s.node_norm["coarse"](t) for lk, t in self.coarse_types.items()})

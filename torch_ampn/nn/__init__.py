@@ -5,6 +5,7 @@ from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule, poin
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.features import (
     coarse_node_features,
+    component_features,
     edge_features,
     fine_node_features,
     gripper_features,
@@ -31,6 +32,7 @@ __all__ = [
     "LayerNormMLP",
     "Normalizer",
     "coarse_node_features",
+    "component_features",
     "edge_features",
     "fine_node_features",
     "geometric_beta_schedule",

@@ -9,7 +9,8 @@ Feature layout (columns, in this order):
 * fine (``l0``) nodes, :func:`fine_node_features`: node-type one-hot (``NodeType.count()``),
   previous residual :math:`\Delta u^{t-1}` (3), prescribed tool motion
   :math:`\Delta u^t_{BC}` (3, zero on plies), fiber direction (3: a unit vector in the
-  initial configuration, zero on tools), component one-hot (``num_components``), and the
+  initial configuration, zero on tools), the component encoding (:func:`component_features`:
+  a one-hot of ``num_components`` columns, or the ply's place in its stack), and the
   gripper features of :func:`gripper_features` (``7 G + 7``). The N(0, 1) noise input (the
   noisy target in ROBIN mode) is *not* part of these columns: :class:`~torch_ampn.nn.AMPN`
   takes it as its own argument and appends it, so that a denoiser can change it per step.
@@ -51,17 +52,77 @@ EDGE_FEATURES_WITH_INITIAL = 8
 RELATIONS_WITH_INITIAL = (MESH, DOWN, UP)
 
 
-def num_fine_node_features(num_components: int, num_grippers: int, fiber_channels: int = 3) -> int:
+#: Ways to tell a node's component (:func:`component_features`).
+COMPONENT_ENCODINGS = ("onehot", "stack")
+#: Columns of the ``"stack"`` component encoding: plies below and above a ply node.
+STACK_FEATURES = 2
+
+
+def num_component_features(num_components: int, encoding: str = "onehot") -> int:
+    """Columns of :func:`component_features`."""
+    _check_encoding(encoding)
+    return num_components if encoding == "onehot" else STACK_FEATURES
+
+
+def num_fine_node_features(
+    num_components: int, num_grippers: int, fiber_channels: int = 3, component_encoding: str = "onehot"
+) -> int:
     """Number of columns of :func:`fine_node_features` (without the noise input)."""
     return (
         NodeType.count()
         + 3  # previous residual
         + 3  # prescribed tool motion
         + fiber_channels
-        + num_components
+        + num_component_features(num_components, component_encoding)
         + GRIPPER_FEATURES_PER_GRIPPER * num_grippers
         + GRIPPER_FEATURES_SUMMED
     )
+
+
+def _check_encoding(encoding: str) -> None:
+    if encoding not in COMPONENT_ENCODINGS:
+        raise ValueError(f"component_encoding must be one of {COMPONENT_ENCODINGS}, got {encoding!r}")
+
+
+def component_features(
+    component: Tensor,
+    node_type: Tensor,
+    num_components: int,
+    encoding: str = "onehot",
+    batch: Tensor | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """How a node's component enters its features, ``[N, num_component_features(C, encoding)]``.
+
+    * ``"onehot"`` (the paper's): a one-hot of the component id. It ties the features to one
+      numbering of one part's components (a 6-ply stack would need more columns, and the
+      punch of a 4-ply part would look like the fifth ply of a 6-ply one).
+    * ``"stack"``: what a component *is*, the same on every part: for a ply node, the number of
+      plies below and above its ply in its graph's stack (ply components are numbered from
+      the bottom, ``0 .. P - 1``, as the embedded simulator and ``torch-ampn-data convert``
+      number them); zeros on tools, whose kind the node-type one-hot tells. Independent of the
+      number of components and of how the tools are numbered.
+
+    Args:
+        component: Component id ``LongTensor[N]``.
+        node_type: :class:`~torch_ampn.data.NodeType` of every node.
+        num_components: ``C`` (width of the one-hot).
+        encoding: ``"onehot"`` or ``"stack"``.
+        batch: Graph of every node (``"stack"`` counts each graph's plies); ``None``: one graph.
+        dtype: Output dtype.
+    """
+    _check_encoding(encoding)
+    if encoding == "onehot":
+        return F.one_hot(component.long(), num_components).to(dtype)
+    ply = node_type == NodeType.PLY  # [N]
+    graph = batch if batch is not None else torch.zeros_like(component)
+    # one slot per node holds every graph id (a static size: no sync, compiles as it is)
+    top = torch.full((max(graph.numel(), 1),), -1, dtype=torch.long, device=component.device)
+    top = top.scatter_reduce(0, graph, torch.where(ply, component.long(), -1), "amax")  # [B] top ply id
+    below = component.long()
+    above = top[graph] - below
+    stack = torch.stack([below, above], dim=-1).to(dtype)  # [N, 2]
+    return torch.where(ply[:, None], stack, 0.0)
 
 
 def num_coarse_node_features() -> int:
@@ -146,6 +207,8 @@ def fine_node_features(
     component: Tensor,
     num_components: int,
     gripper: Tensor,
+    component_encoding: str = "onehot",
+    batch: Tensor | None = None,
 ) -> Tensor:
     r"""Features of the fine (``l0``) nodes, without the noise input.
 
@@ -157,9 +220,12 @@ def fine_node_features(
         component: Component id ``LongTensor[N]`` in ``0 .. num_components - 1``.
         num_components: Number of components ``C`` (width of the component one-hot).
         gripper: The nodes' :func:`gripper_features` ``[N, 7 G + 7]``; its dtype is the output's.
+        component_encoding: See :func:`component_features`.
+        batch: Graph of every node (for the ``"stack"`` encoding of a batch).
 
     Returns:
-        ``[N, num_fine_node_features(C, G, F)]`` in the column order of the module docstring.
+        ``[N, num_fine_node_features(C, G, F, component_encoding)]`` in the column order of
+        the module docstring.
     """
     dtype = gripper.dtype
     return torch.cat(
@@ -168,7 +234,7 @@ def fine_node_features(
             prev_disp.to(dtype),
             bc_disp.to(dtype),
             fiber.to(dtype),
-            F.one_hot(component.long(), num_components).to(dtype),
+            component_features(component, node_type, num_components, component_encoding, batch, dtype),
             gripper,
         ],
         dim=-1,
@@ -216,6 +282,7 @@ def hierarchical_features(
     num_levels: int | None = None,
     alpha: float = 3e-2,
     eps: float = 1e-8,
+    component_encoding: str = "onehot",
 ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
     """All node and edge features of a (batched) :class:`~torch_ampn.data.HierarchicalData`.
 
@@ -231,6 +298,7 @@ def hierarchical_features(
         num_levels: Use levels ``0 .. num_levels - 1`` only (default: all).
         alpha: See :func:`gripper_features`.
         eps: See :func:`gripper_features`.
+        component_encoding: See :func:`component_features`.
 
     Returns:
         ``(x_dict, edge_attr_dict)``: ``x_dict["lk"]`` node features and
@@ -251,6 +319,8 @@ def hierarchical_features(
             fine.component,
             num_components,
             gripper_features(pos, data.gripper_pos, data.gripper_force, batch, alpha, eps),
+            component_encoding,
+            batch,
         )
     }
     pos_l, pos0_l = [pos], [pos0]

@@ -35,7 +35,9 @@ class AMPNSurrogate(nn.Module):
     :func:`~torch_ampn.data.step_sample` (one or a ``Batch``), with contact edges filled.
 
     Args:
-        num_components: Components of the mesh ``C`` (plies and tools; 6 for the default dataset).
+        num_components: Components of the mesh ``C`` (plies and tools; 6 for the default dataset);
+            with ``component_encoding="stack"`` the most of any part (contact tables have
+            ``k (C - 1)`` slots, unused ones masked).
         num_grippers: Grippers ``G`` (2 for the default dataset).
         num_levels: Levels of the V-cycle, ``L + 1`` (paper: 4; 1 = flat MeshGraphNet baseline).
         diffusion_steps: ``K`` of ROBIN mode; 1 = AMPN with the plain MSE objective.
@@ -60,6 +62,9 @@ class AMPNSurrogate(nn.Module):
         coarse_loss_weight: :math:`\lambda` of the multilevel loss
             (:func:`~torch_ampn.nn.multilevel_mse`): the squared errors of the residual error
             restricted to every coarse level are added with this weight; 0 (the paper): plain MSE.
+        component_encoding: How a node's component enters its features
+            (:func:`~torch_ampn.nn.features.component_features`): ``"onehot"`` (the paper's, one
+            part) or ``"stack"`` (a ply's place in its stack: the same on parts of any ply count).
         **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
@@ -81,6 +86,7 @@ class AMPNSurrogate(nn.Module):
         predict_change: bool = False,
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
+        component_encoding: str = "onehot",
         **network: Any,
     ) -> None:
         super().__init__()
@@ -101,6 +107,7 @@ class AMPNSurrogate(nn.Module):
         self.predict_change = predict_change
         self.huber_delta = huber_delta
         self.coarse_loss_weight = coarse_loss_weight
+        self.component_encoding = component_encoding
         self.contact = ComponentRadiusGraph(
             contact_radius,
             contact_k,
@@ -109,7 +116,7 @@ class AMPNSurrogate(nn.Module):
             mode=contact_mode,
             positions=contact_positions,
         )
-        fine_in = num_fine_node_features(num_components, num_grippers)
+        fine_in = num_fine_node_features(num_components, num_grippers, component_encoding=component_encoding)
         model = AMPN(
             fine_in,
             num_levels=num_levels,
@@ -150,7 +157,11 @@ class AMPNSurrogate(nn.Module):
         """Add a training window (or batch) to the statistics of every normaliser."""
         self._check_levels(data)
         x_dict, e_dict = hierarchical_features(
-            data, self.num_components, self.num_levels, alpha=self.gripper_alpha
+            data,
+            self.num_components,
+            self.num_levels,
+            alpha=self.gripper_alpha,
+            component_encoding=self.component_encoding,
         )
         for lk, x in x_dict.items():
             self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
@@ -184,7 +195,11 @@ class AMPNSurrogate(nn.Module):
         """``(x_dict, edge_index_dict, edge_attr_dict)`` of the used levels, normalised."""
         self._check_levels(data)
         x_dict, e_dict = hierarchical_features(
-            data, self.num_components, self.num_levels, alpha=self.gripper_alpha
+            data,
+            self.num_components,
+            self.num_levels,
+            alpha=self.gripper_alpha,
+            component_encoding=self.component_encoding,
         )
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
@@ -282,8 +297,10 @@ class AMPNSurrogate(nn.Module):
 
     def extra_repr(self) -> str:
         """Data sizes shown by ``repr``."""
+        encoding = self.component_encoding
         return (
             f"num_components={self.num_components}, num_grippers={self.num_grippers}, "
             f"diffusion_steps={self.diffusion_steps}"
             + (", predict_change=True" if self.predict_change else "")
+            + (f", component_encoding={encoding!r}" if encoding != "onehot" else "")
         )

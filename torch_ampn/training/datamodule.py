@@ -367,21 +367,45 @@ class AMPNDataModule(L.LightningDataModule):
         items = self._splits.get(split)
         return len(items) if items is not None else None
 
+    def _family_components(self) -> int:
+        """Most components of any part of the dataset's family (``dataset.json``), 0 without one."""
+        spec = self.data_dir / "dataset.json"
+        if not spec.exists():
+            return 0
+        try:
+            family = json.loads(spec.read_text()).get("family")
+        except (ValueError, AttributeError):
+            return 0
+        return int(family["num_plies"][1]) + 2 if family else 0  # plies, punch and die
+
     def check_model(self, surrogate: torch.nn.Module) -> None:
         """Raise a clear error if the model's component/gripper counts do not match the data."""
         split = next((s for s in ("train", "val", "test") if split_files(self.data_dir, s)), None)
         if split is None:
             return
         traj = Trajectory.load(split_files(self.data_dir, split)[0])
-        for name, data_value in (
-            ("num_components", traj.num_components),
-            ("num_grippers", traj.num_grippers),
-        ):
-            model_value = getattr(surrogate, name)
-            if model_value != data_value:
+        if traj.num_grippers != surrogate.num_grippers:
+            raise ValueError(
+                f"model.num_grippers={surrogate.num_grippers} but the trajectories in {self.data_dir} "
+                f"have {traj.num_grippers}"
+            )
+        components = max(traj.num_components, self._family_components())
+        if getattr(surrogate, "component_encoding", "onehot") == "stack":  # up to C components
+            if components > surrogate.num_components:
                 raise ValueError(
-                    f"model.{name}={model_value} but the trajectories in {self.data_dir} have {data_value}"
+                    f"model.num_components={surrogate.num_components} but the trajectories in "
+                    f"{self.data_dir} have up to {components}; raise it to the most of any part"
                 )
+        elif components != surrogate.num_components:
+            raise ValueError(
+                f"model.num_components={surrogate.num_components} but the trajectories in {self.data_dir} "
+                f"have {components}"
+                + (
+                    ""
+                    if traj.meta.get("part") is None
+                    else " (a family of parts: use model.component_encoding stack)"
+                )
+            )
         levels = self.hierarchies(traj).num_levels
         if levels < surrogate.num_levels:
             raise ValueError(

@@ -57,6 +57,7 @@ SURROGATE_ARGUMENTS = (
     "predict_change",
     "huber_delta",
     "coarse_loss_weight",
+    "component_encoding",
 )
 
 
@@ -88,7 +89,11 @@ class AMPNLightningModule(L.LightningModule):
     links the contact settings into the data module, and checkpoints hold plain values.
 
     Args:
-        num_components: Components of the mesh (plies + tools; 6 for the default dataset).
+        num_components: Components of the mesh (plies + tools; 6 for the default dataset); with
+            ``component_encoding: stack``, the most of any part of a family.
+        component_encoding: ``"onehot"`` (the paper's component one-hot, one part) or
+            ``"stack"`` (plies below and above a ply node: the same on parts of any ply count;
+            :func:`~torch_ampn.nn.features.component_features`).
         num_grippers: Grippers (2 for the default dataset).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
@@ -172,6 +177,7 @@ class AMPNLightningModule(L.LightningModule):
         predict_change: bool = False,
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
+        component_encoding: str = "onehot",
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
