@@ -129,6 +129,8 @@ def test_the_stack_encoding_counts_plies_per_graph_and_ignores_tool_numbering():
     )
     alone = component_features(component[4:], node_type[4:], 5, "stack")  # graph 1 on its own
     assert torch.equal(alone, stack[4:])
+    traced = torch.compile(component_features, fullgraph=True, backend="eager")  # no graph break
+    assert torch.equal(traced(component, node_type, 5, "stack", batch), stack)
 
 
 def test_a_batch_of_parts_with_other_ply_counts_equals_the_single_predictions():

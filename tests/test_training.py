@@ -18,7 +18,7 @@ import lightning as L  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
-from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
+from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
@@ -439,6 +439,30 @@ def test_test_and_predict_refuse_another_mesh_unless_told(data_dir, tmp_path, sm
     main(_from_checkpoint("test", ckpt, other, out, "--model.check_mesh", "false"))  # told: it runs
     assert any((out / "reports").rglob("test_summary.json"))
     main(_from_checkpoint("test", ckpt, data_dir, out))  # its own mesh: no complaint
+
+
+def test_a_model_of_a_family_of_parts_fits_and_tests_per_part(tmp_path, small_sim, capsys):
+    """Mixed parts (2 and 3 plies: two meshes) in training batches, validation and test; a part column."""
+    data = tmp_path / "family"
+    family = PartFamily(num_plies=(2, 3))
+    generate_dataset(data, 3, 1, 2, config=small_sim, family=family, workers=1, compile=False, progress=False)
+    plies = {len(Trajectory.load(f).meta["part"]["ply_angles"]) for f in sorted(data.glob("*/*.pt"))}
+    assert plies == {2, 3}  # both stacks are there
+    config, out = _config(tmp_path, data)
+    settings = yaml.safe_load(config.read_text())
+    settings["model"].update(component_encoding="stack", num_components=5)
+    settings["data"].update(batch_size=3)
+    config.write_text(yaml.safe_dump(settings))
+    main(["fit", "--config", str(config)])
+    capsys.readouterr()
+    main(_from_checkpoint("test", out / "ckpt" / "last.ckpt", data, out))
+    printed = capsys.readouterr().out
+    rows = list(csv.DictReader(open(next((out / "reports").rglob("test_rmse.csv")))))
+    assert len(rows) == 2 and all(r["part"].endswith(" mm") and "plies" in r["part"] for r in rows)
+    assert all(math.isfinite(float(r["model"])) for r in rows)
+    assert rows[0]["part"] in printed  # the printed table names the parts
+    with pytest.raises(ValueError, match="model.num_components=4 but the trajectories .* have up to 5"):
+        main(["fit", "--config", str(config), "--model.num_components", "4"])
 
 
 def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):

@@ -114,7 +114,7 @@ def component_features(
     _check_encoding(encoding)
     if encoding == "onehot":
         return F.one_hot(component.long(), num_components).to(dtype)
-    ply = node_type == NodeType.PLY  # [N]
+    ply = torch.eq(node_type, int(NodeType.PLY))  # [N] (a plain int: traceable by torch.compile)
     graph = batch if batch is not None else torch.zeros_like(component)
     # one slot per node holds every graph id (a static size: no sync, compiles as it is)
     top = torch.full((max(graph.numel(), 1),), -1, dtype=torch.long, device=component.device)

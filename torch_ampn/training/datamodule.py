@@ -24,6 +24,7 @@ from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import generate_dataset
+from torch_ampn.sim.family import PartFamily
 from torch_ampn.training.items import (
     EachOnceSampler,
     ResumableLoader,
@@ -85,6 +86,9 @@ class AMPNDataModule(L.LightningDataModule):
         predict_gripper_forces: And: one list of gripper forces (N) per setting.
         predict_batch_size: Settings rolled out together by ``predict`` (one batch on the fast
             path, :class:`~torch_ampn.fast_rollout.FastRollout`; outputs per setting as with 1).
+        family: Generate a family of parts (:class:`~torch_ampn.sim.PartFamily` settings, or
+            ``"default"``): every trajectory its own tool geometry and ply stack; pair it with
+            ``model.component_encoding: stack``.
         shuffle_seed: Seed of the training windows' order (a permutation per epoch, see
             :class:`~torch_ampn.training.items.ResumableShuffleSampler`); ``None``: the fit's
             ``seed_everything`` value (0 without one). A fit resumed from a checkpoint continues
@@ -117,6 +121,7 @@ class AMPNDataModule(L.LightningDataModule):
         predict_gripper_forces: list[list[float]] | None = None,
         predict_batch_size: int = 1,
         shuffle_seed: int | None = None,
+        family: dict[str, Any] | str | None = None,
     ) -> None:
         super().__init__()
         if predict_batch_size < 1:
@@ -145,12 +150,24 @@ class AMPNDataModule(L.LightningDataModule):
                 resolution=hp.resolution,
                 workers=hp.generate_workers,
                 config=self._generator_config(),
+                family=self._family(),
             )
             return
         if not any(split_files(self.data_dir, s) for s in ("train", "val", "test")):
             raise FileNotFoundError(
                 f"{self.data_dir}: no trajectories; set data.generate=true to simulate the default dataset"
             )
+
+    def _family(self) -> PartFamily | None:
+        spec = self.hparams.family
+        if spec is None:
+            return None
+        if spec == "default":
+            return PartFamily()
+        try:
+            return PartFamily.from_dict(spec)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"data.family: not a family of parts ({err})") from err
 
     def _generator_config(self) -> StampFormingConfig | None:
         overrides = self.hparams.simulator

@@ -60,6 +60,14 @@ def plot_final_shapes(path: Path, traj: Trajectory, pred: Tensor, title: str) ->
     plt.close(fig)
 
 
+def part_label(part: dict | None) -> str:
+    """Short label of a family trajectory's part (``meta["part"]``): ``double dome, 4 plies, 47 mm``."""
+    if not part:
+        return ""
+    shape = str(part.get("shape", "part")).replace("_", " ")
+    return f"{shape}, {len(part.get('ply_angles', ()))} plies, {float(part.get('dome_depth', 0.0)):.0f} mm"
+
+
 class TestReport:
     """Collects per-trajectory rollout errors and writes the test outputs into ``folder``.
 
@@ -86,7 +94,11 @@ class TestReport:
     ) -> None:
         """Record one test trajectory (and write its XDMF file, and the shape figure for the first)."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        row = {"trajectory": item.name, "model": float(rmse[1:].mean())}
+        row = {"trajectory": item.name}
+        label = part_label(item.trajectory.meta.get("part"))
+        if label:
+            row["part"] = label
+        row["model"] = float(rmse[1:].mean())
         row.update({name: float(curve[1:].mean()) for name, curve in baselines.items()})
         row["rollout_seconds"] = seconds
         self.rows.append(row)
@@ -117,7 +129,7 @@ class TestReport:
 
     def summary(self) -> dict[str, float]:
         """Means over trajectories: model, static, best rigid and best baseline RMSE, and the ratio."""
-        mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in self.rows[0] if k != "trajectory"}
+        mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in self._numeric()}
         rigid = {k: v for k, v in mean.items() if k.startswith("rigid")}
         best_rigid = min(rigid, key=rigid.get) if rigid else None
         baseline = min(mean["static"], rigid[best_rigid] if best_rigid else float("inf"))
@@ -133,16 +145,24 @@ class TestReport:
             out["rigid_touch_radius"] = float(best_rigid.removeprefix("rigid_r"))
         return out
 
+    def _numeric(self) -> list[str]:
+        """Columns that hold numbers (all but the trajectory's name and its part)."""
+        return [k for k in self.rows[0] if k not in ("trajectory", "part")]
+
     def table(self) -> str:
-        """The per-trajectory table and the mean row, as printed text."""
-        keys = [k for k in self.rows[0] if k != "trajectory"]
-        head = f"{'trajectory':<16}" + "".join(f"{k:>16}" for k in keys)
+        """The per-trajectory table (with each trajectory's part, for a family) and the mean row."""
+        keys = self._numeric()
+        parts = "part" in self.rows[0]
+        width = max([len(r.get("part", "")) for r in self.rows] + [4]) + 2 if parts else 0
+        head = f"{'trajectory':<16}" + (f"{'part':<{width}}" if parts else "")
+        head += "".join(f"{k:>16}" for k in keys)
         lines = [head, "-" * len(head)]
         for r in self.rows:
-            lines.append(f"{r['trajectory']:<16}" + "".join(f"{r[k]:>16.4f}" for k in keys))
+            label = f"{r.get('part', ''):<{width}}" if parts else ""
+            lines.append(f"{r['trajectory']:<16}" + label + "".join(f"{r[k]:>16.4f}" for k in keys))
         mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in keys}
         lines.append("-" * len(head))
-        lines.append(f"{'mean':<16}" + "".join(f"{mean[k]:>16.4f}" for k in keys))
+        lines.append(f"{'mean':<16}" + " " * width + "".join(f"{mean[k]:>16.4f}" for k in keys))
         return "\n".join(lines)
 
     def finish(self) -> dict[str, float]:
