@@ -59,10 +59,13 @@ def sync(device: torch.device) -> None:
 
 
 class Timed:
-    """Wraps a callable and records its wall time per call (synchronising the device)."""
+    """Wraps a callable and records its wall time per call (synchronising the device) in ``seconds``.
 
-    def __init__(self, fn, device: torch.device) -> None:
-        self.fn, self.device, self.seconds = fn, device, []
+    ``sink``: a list to record into (several wrapped callables can share one).
+    """
+
+    def __init__(self, fn, device: torch.device, sink: list | None = None) -> None:
+        self.fn, self.device, self.seconds = fn, device, [] if sink is None else sink
 
     def __call__(self, *args, **kwargs):
         sync(self.device)
@@ -150,16 +153,16 @@ def time_fast(s, trajs, hierarchy, device, repeats, compile: bool, candidates: s
         totals.append(time.perf_counter() - start)
     timers: dict[str, list[float]] = {"search": []}
     for c in fast.candidates:
-        c.build = _timed_into(c.build, timers["search"], device)
+        c.build = Timed(c.build, device, timers["search"])
     if s.diffusion_steps == 1:  # one compiled graph: selection, features, network
         timers["step"] = []
-        fast._fused = _timed_into(fast._fused, timers["step"], device)
+        fast._fused = Timed(fast._fused, device, timers["step"])
         if not fast.compiled:
-            fast._step_fused = _timed_into(fast._step_fused, timers["step"], device)
+            fast._step_fused = Timed(fast._step_fused, device, timers["step"])
     else:
         timers["inputs"], timers["network"] = [], []
-        fast._inputs = _timed_into(fast._inputs, timers["inputs"], device)
-        fast._residual = _timed_into(fast._residual, timers["network"], device)
+        fast._inputs = Timed(fast._inputs, device, timers["inputs"])
+        fast._residual = Timed(fast._residual, device, timers["network"])
     run()
     steps = trajs[0].num_steps
     return {
@@ -171,18 +174,6 @@ def time_fast(s, trajs, hierarchy, device, repeats, compile: bool, candidates: s
         "phases_ms_per_step": {k: 1e3 * sum(v) / steps for k, v in timers.items()},
         "pred": pred,
     }
-
-
-def _timed_into(fn, sink: list, device):
-    def call(*args, **kwargs):
-        sync(device)
-        start = time.perf_counter()
-        out = fn(*args, **kwargs)
-        sync(device)
-        sink.append(time.perf_counter() - start)
-        return out
-
-    return call
 
 
 def time_simulator(cfg: StampFormingConfig, seed: int) -> float:
