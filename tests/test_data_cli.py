@@ -54,7 +54,8 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(data_cli, "generate_dataset", fake)
     argv = ["generate", "--out", str(tmp_path), "--num-train", "1", "--num-val", "0", "--num-test", "0"]
     assert data_cli.main([*argv, "--workers", "1", "--batch", "2", "--no-compile"]) == 0
-    assert calls == [(tmp_path, (1, 0, 0, "coarse", 1, 2), {"compile": False, "device": "cpu"})]
+    options = {"compile": False, "device": "cpu", "family": None}
+    assert calls == [(tmp_path, (1, 0, 0, "coarse", 1, 2), options)]
     assert f"1 trajectories in {tmp_path}" in capsys.readouterr().out
 
     def refuse(*args, **kwargs):

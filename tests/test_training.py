@@ -823,7 +823,10 @@ def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(data_dir, tmp_path):
     )
     killing_path = tmp_path / "killed" / "killing.yaml"
     killing_path.write_text(yaml.safe_dump(killing))
-    script = "import sys; from torch_ampn.training.cli import main; main(sys.argv[1:])"
+    # the same thread count as this process's fits: the summation order of a reduction depends on it
+    threads = torch.get_num_threads()
+    script = f"import sys, torch; torch.set_num_threads({threads}); "
+    script += "from torch_ampn.training.cli import main; main(sys.argv[1:])"
     done = subprocess.run(
         [sys.executable, "-c", script, "fit", "--config", str(killing_path)],
         capture_output=True, text=True, cwd=tmp_path,
