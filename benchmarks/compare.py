@@ -86,9 +86,12 @@ def _set(config: dict, dotted: str, value: Any) -> None:
 
 
 def cell_config(
-    base: dict, variant: str, seed: int, steps: int, cell_dir: Path, args: argparse.Namespace
+    base: dict, changes: dict[str, Any], seed: int, steps: int, cell_dir: Path, args: argparse.Namespace
 ) -> dict:
-    """The base config with the variant's changes, the seed, the step budget and the cell's folders."""
+    """The base config with ``changes`` (``section.key`` -> value), the seed, budget and folders.
+
+    ``args`` gives the device, the dataset (``data_dir``), progress bars and the ``--set`` overrides.
+    """
     config = copy.deepcopy(base)
     trainer = config.setdefault("trainer", {})
     config["seed_everything"] = seed
@@ -110,7 +113,7 @@ def cell_config(
     model = config.setdefault("model", {})
     model.update(output_dir=str(cell_dir / "test"), rollout_seed=seed)
     config.setdefault("data", {})["data_dir"] = str(args.data_dir)
-    for dotted, value in VARIANTS[variant].changes.items():
+    for dotted, value in changes.items():
         _set(config, dotted, value)
     for dotted, value in args.set or []:
         _set(config, dotted, yaml.safe_load(value))
@@ -253,13 +256,13 @@ def _atomic_write(path: Path, write) -> None:
     os.replace(tmp, path)
 
 
-def run_cell(
-    variant: str, seed: int, base: dict, args: argparse.Namespace, simulator: dict[str, Any]
-) -> dict[str, Any]:
-    """Fit, test and measure one cell; returns its result (also written atomically as JSON)."""
-    cell_dir = args.workdir / f"{variant}_seed{seed}"
+def fit_and_test(config: dict, cell_dir: Path) -> float:
+    """``torch-ampn fit`` then ``test`` (best checkpoint) of ``config`` in ``cell_dir``; the fit's seconds.
+
+    A fit of the same config that was stopped resumes from its ``last.ckpt``; one of another
+    config starts over. Both log into ``cell_dir/log.txt``.
+    """
     cell_dir.mkdir(parents=True, exist_ok=True)
-    config = cell_config(base, variant, seed, args.steps, cell_dir, args)
     config_path = cell_dir / "config.yaml"
     last = cell_dir / "checkpoints" / "last.ckpt"
     if last.exists() and config_path.exists() and yaml.safe_load(config_path.read_text()) != config:
@@ -270,6 +273,16 @@ def run_cell(
     _cli("fit", config_path, log, *(["--ckpt_path", str(last)] if last.exists() else []))
     fit_seconds = time.perf_counter() - start
     _cli("test", config_path, log, "--ckpt_path", str(cell_dir / "checkpoints" / "best.ckpt"))
+    return fit_seconds
+
+
+def run_cell(
+    variant: str, seed: int, base: dict, args: argparse.Namespace, simulator: dict[str, Any]
+) -> dict[str, Any]:
+    """Fit, test and measure one cell; returns its result (also written atomically as JSON)."""
+    cell_dir = args.workdir / f"{variant}_seed{seed}"
+    config = cell_config(base, VARIANTS[variant].changes, seed, args.steps, cell_dir, args)
+    fit_seconds = fit_and_test(config, cell_dir)
     test_dir = cell_dir / "test"
     summary = json.loads((test_dir / "test_summary.json").read_text())
     rows = _read_csv(test_dir / "test_rmse.csv")

@@ -1,0 +1,168 @@
+"""benchmarks/family.py end to end on a tiny budget: both cells, the table, resuming."""
+
+import csv
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytest.importorskip("lightning")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_family_bench():
+    spec = importlib.util.spec_from_file_location("family_bench", ROOT / "benchmarks" / "family.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["family_bench"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _config(simulator: dict, **model) -> dict:
+    return {
+        "seed_everything": 0,
+        "trainer": {
+            "accelerator": "cpu",
+            "devices": 1,
+            "max_steps": 1000,
+            "val_check_interval": 1000,
+            "check_val_every_n_epoch": None,
+            "enable_model_summary": False,
+            "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "x"}},
+            "callbacks": [
+                {
+                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+                    "init_args": {"dirpath": "x", "monitor": "val/rollout_rmse", "mode": "min"},
+                }
+            ],
+        },
+        "model": {
+            "hidden_channels": 8,
+            "mlp_channels": 8,
+            "num_levels": 2,
+            "pre_layers": 1,
+            "down_layers": 1,
+            "solve_layers": 1,
+            "post_layers": 1,
+            "up_layers": 1,
+            "contact_radius": 12.0,
+            "contact_k": 1,
+            "warmup_steps": 1,
+            "statistics_samples": 8,
+            "touch_radii": [3.0, 9.0],
+            "export_xdmf": False,
+            **model,
+        },  # fmt: skip
+        "data": {"data_dir": "unused", "min_coarse_nodes": 4, "batch_size": 2, "simulator": simulator},
+    }
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, small_sim):
+    """Tiny single-part and family configs; their datasets made beforehand without compiling the solver."""
+    from torch_ampn.sim import PartFamily, generate_dataset
+    from torch_ampn.testing import SMALL_SIMULATOR
+
+    root = tmp_path_factory.mktemp("family_bench")
+    family = PartFamily(num_plies=(2, 3))
+    options = dict(config=small_sim, workers=1, compile=False, progress=False)
+    generate_dataset(root / "single", 2, 1, 1, **options)
+    generate_dataset(root / "family", 3, 1, 2, family=family, **options)
+    deeper = PartFamily.from_dict({**family.to_dict(), "dome_depth": [55.0, 60.0]})
+    generate_dataset(root / "family_deep", 0, 0, 2, family=deeper, **options)
+    single = _config(SMALL_SIMULATOR)
+    single["data"].update(num_train=2, num_val=1, num_test=1)
+    fam = _config(SMALL_SIMULATOR, component_encoding="stack", num_components=5)
+    fam["data"]["family"] = {"num_plies": [2, 3]}
+    (root / "single.yaml").write_text(yaml.safe_dump(single))
+    (root / "family.yaml").write_text(yaml.safe_dump(fam))
+    args = [
+        "--single-config", str(root / "single.yaml"), "--family-config", str(root / "family.yaml"),
+        "--single-data", str(root / "single"), "--family-data", str(root / "family"),
+        "--num-train", "3", "--num-val", "1", "--num-test", "2",
+        "--extrapolation", 'deep={"dome_depth": [55.0, 60.0]}', "--num-extrapolation", "2",
+        "--steps", "3", "--results", str(root / "results"), "--workdir", str(root / "work"),
+    ]  # fmt: skip
+    return root, args
+
+
+def _test_rows(folder: Path) -> list[dict]:
+    with (folder / "test_rmse.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys):
+    root, args = setup
+    bench = _load_family_bench()
+    assert bench.main(args) == 0
+    results = root / "results"
+    single = json.loads((results / "single_seed0.json").read_text())
+    family = json.loads((results / "family_seed0.json").read_text())
+    assert (
+        single["steps"] == family["steps"] == 3 and single["seed"] == family["seed"] == 0
+    )  # the same budget
+    assert list(single["sets"]) == ["single"] and list(family["sets"]) == ["inside", "deep"]
+    assert family["num_train"] == 3 and family["sets"]["deep"]["family_changes"] == {
+        "dome_depth": [55.0, 60.0]
+    }
+    # every set is its own test folder: RMSE = the mean of the per-trajectory rows, parts named
+    folders = {
+        "single": root / "work" / "single_seed0" / "test",
+        "inside": root / "work" / "family_seed0" / "test",
+        "deep": root / "work" / "family_seed0" / "test_deep",
+    }
+    rows = {name: _test_rows(folder) for name, folder in folders.items()}
+    assert len(rows["single"]) == 1 and len(rows["inside"]) == 2 and len(rows["deep"]) == 2
+    depths = [float(r["part"].rsplit(", ", 1)[1].removesuffix(" mm")) for r in rows["deep"]]
+    assert all(55 <= d <= 60 for d in depths)  # the extrapolation set is the deeper domes
+    table = json.loads((results / "table.json").read_text())
+    by_set = {r["set"]: r for r in table["rows"]}
+    assert list(by_set) == ["single", "inside", "deep"]
+    for name, set_rows in rows.items():
+        mean = sum(float(r["model"]) for r in set_rows) / len(set_rows)
+        summary = json.loads((folders[name] / "test_summary.json").read_text())
+        row = by_set[name]
+        assert row["rmse"] == pytest.approx(mean, rel=1e-6) and row["parts"] == len(set_rows)
+        assert row["below_baseline"] == pytest.approx(summary["baseline_rmse"] / mean, rel=1e-6)
+        assert row["vs_single"] == pytest.approx(mean / by_set["single"]["rmse"], rel=1e-6)
+    markdown = (results / "table.md").read_text()
+    for r in rows["inside"] + rows["deep"]:
+        assert f"| {r['trajectory']} | {r['part']} |" in markdown  # one row per test part
+    assert "missing" not in markdown
+    assert (results / "best_and_worst.png").stat().st_size > 10_000
+    # a second run finds both cells done: nothing is fitted again
+    logs = {c: (root / "work" / f"{c}_seed0" / "log.txt").stat().st_mtime for c in ("single", "family")}
+    capsys.readouterr()
+    assert bench.main([*args, "--no-figures"]) == 0
+    printed = capsys.readouterr().out
+    assert "single: done before, skipped" in printed and "family: done before, skipped" in printed
+    assert {c: (root / "work" / f"{c}_seed0" / "log.txt").stat().st_mtime for c in logs} == logs
+
+
+def test_best_and_worst_parts_by_error_relative_to_the_baseline():
+    bench = _load_family_bench()
+
+    def part(name: str, model: float, baseline: float) -> dict:
+        return {"trajectory": name, "part": "", "model": model, "best_baseline": baseline}
+
+    family = {
+        "sets": {
+            "inside": {"trajectories": [part("a", 1.0, 2.0), part("b", 1.0, 5.0), part("c", 2.0, 2.5)]},
+            "deep": {"trajectories": [part("d", 3.0, 4.0)]},
+            "angle": {"trajectories": [part("e", 1.0, 4.0), part("f", 2.0, 8.0)]},
+        }
+    }
+    # ratios inside: a 0.5, b 0.2, c 0.8; outside: d 0.75, e 0.25, f 0.25 (first of equals)
+    picked = [(s, t["trajectory"]) for s, t in bench.best_and_worst(family)]
+    assert picked == [("inside", "b"), ("inside", "c"), ("angle", "e"), ("deep", "d")]
+
+
+def test_a_malformed_extrapolation_is_refused_in_one_line(capsys):
+    bench = _load_family_bench()
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--extrapolation", "deeper"])
+    assert "--extrapolation deeper: not NAME=JSON with a mapping" in capsys.readouterr().err
