@@ -6,8 +6,9 @@ for radius ``r`` and ``k`` neighbours per other component:
 
 * the number of contact edges (component kNN) and of plain radius edges, and their ratio,
 * the time per call (median of ``--repeats`` after ``--warmup`` calls; CUDA synchronised) of
-  the pure-PyTorch grid backend (edge list and fixed-shape table) and of the torch-cluster
-  backend when it is installed.
+  the pure-PyTorch grid backend (edge list and fixed-shape table), of the C grid
+  (``backend="native"``, CPU) and of the torch-cluster backend when it is installed; the
+  other backends' tables are checked equal to the grid's.
 
 Usage::
 
@@ -35,6 +36,7 @@ from torch_ampn.data import laminate_mesh
 from torch_ampn.transforms import (
     component_radius_graph,
     component_radius_table,
+    native_available,
     plain_radius_graph,
     torch_cluster_available,
 )
@@ -90,7 +92,7 @@ def bench_scale(scale: int, args: argparse.Namespace, device: torch.device) -> d
     row: dict = {"scale": scale, "num_nodes": n, "num_components": c, "r": r, "k": k}
     row["fixed_density"] = bool(args.fixed_density)
 
-    nbr, mask = component_radius_table(pos, comp, r, k, num_components=c)
+    nbr, mask = component_radius_table(pos, comp, r, k, num_components=c, backend="grid")
     row["table_shape"] = list(nbr.shape)
     row["knn_edges"] = int(mask.sum())
     sync(device)
@@ -105,11 +107,19 @@ def bench_scale(scale: int, args: argparse.Namespace, device: torch.device) -> d
 
     reps, warm = args.repeats, args.warmup
     row["grid_edge_list"] = time_call(
-        lambda: component_radius_graph(pos, comp, r, k, num_components=c), device, reps, warm
+        lambda: component_radius_graph(pos, comp, r, k, num_components=c, backend="grid"), device, reps, warm
     )
     row["grid_table"] = time_call(
-        lambda: component_radius_table(pos, comp, r, k, num_components=c), device, reps, warm
+        lambda: component_radius_table(pos, comp, r, k, num_components=c, backend="grid"), device, reps, warm
     )
+    if device.type == "cpu" and native_available():
+
+        def native():
+            return component_radius_table(pos, comp, r, k, num_components=c, backend="native")
+
+        row["native_table"] = time_call(native, device, reps, warm)
+        native = native()
+        row["native_equal"] = torch.equal(nbr, native[0]) and torch.equal(mask, native[1])
     if not args.no_cluster and torch_cluster_available():
         try:
             row["cluster_table"] = time_call(
@@ -128,17 +138,19 @@ def bench_scale(scale: int, args: argparse.Namespace, device: torch.device) -> d
 def print_table(rows: list[dict]) -> None:
     head = (
         f"{'scale':>5} {'nodes':>8} {'kNN edges':>10} {'plain edges':>12} {'ratio':>6} "
-        f"{'edges ms':>9} {'table ms':>9} {'us/node':>8} {'cluster ms':>10} {'plain ms':>9}"
+        f"{'edges ms':>9} {'table ms':>9} {'us/node':>8} {'native ms':>9} {'cluster ms':>10} {'plain ms':>9}"
     )
     print(head)
     print("-" * len(head))
     for row in rows:
         cluster = row.get("cluster_table", {}).get("median_ms")
+        native = row.get("native_table", {}).get("median_ms")
         per_node = 1e3 * row["grid_table"]["median_ms"] / row["num_nodes"]
         print(
             f"{row['scale']:>5} {row['num_nodes']:>8} {row['knn_edges']:>10} {row['plain_edges']:>12} "
             f"{row['edge_ratio']:>6.1f} {row['grid_edge_list']['median_ms']:>9.1f} "
             f"{row['grid_table']['median_ms']:>9.1f} {per_node:>8.2f} "
+            f"{'-' if native is None else f'{native:.1f}':>9} "
             f"{'-' if cluster is None else f'{cluster:.1f}':>10} "
             f"{row['plain_time_ms']:>9.1f}"
         )
@@ -166,6 +178,7 @@ def main() -> None:
         "cpu_count": os.cpu_count(),
         "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
         "torch_cluster": torch_cluster_available(),
+        "native": native_available(),
         "timing": f"median of {args.repeats} calls after {args.warmup} warm-up calls",
     }
     out = Path(args.out or f"benchmarks/results/contact_{args.device}.json")

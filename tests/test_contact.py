@@ -19,11 +19,26 @@ from torch_ampn.transforms import (
 )
 from torch_ampn.transforms._grid import CellGrid
 from torch_ampn.transforms._grid_search import auto_cell_size
+from torch_ampn.transforms._native import native_available
 
 CUDA = pytest.param(
     "cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")]
 )
 DEVICES = ["cpu", CUDA]
+
+
+@pytest.fixture(autouse=True, scope="module", params=["native", "grid"])
+def auto_backend(request):
+    """Every test twice: ``backend="auto"`` on the CPU as the C search, and as the PyTorch grid."""
+    import torch_ampn.transforms._checks as checks
+
+    if request.param == "native" and not native_available():
+        pytest.skip("no C compiler: the native search is not available")
+    saved = checks.native_available
+    if request.param == "grid":
+        checks.native_available = lambda: False
+    yield request.param
+    checks.native_available = saved
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -552,3 +567,36 @@ def test_devices(device):
     h = _hierarchy().to(device)
     out = ComponentRadiusGraph(r=0.9, k=2)(h)
     assert out.contact(1).edge_index.device.type == device
+
+
+# ---- the native (C) search ------------------------------------------------------------------------
+def test_auto_is_the_native_search_on_the_cpu_and_explicit_backends_agree(auto_backend):
+    from torch_ampn.transforms._checks import check_backend
+
+    assert check_backend("auto", torch.device("cpu")) == auto_backend
+    assert check_backend("auto", torch.device("meta")) == "grid"  # no native search off the CPU
+    assert check_backend("auto") == "grid"  # callers without a native search
+    if auto_backend == "grid":  # (the native search is switched off in this pass)
+        return
+    pos, comp = random_cloud(400, 5, seed=4, lattice=0.25)
+    batch = (torch.arange(400) >= 150).long()
+    native = component_radius_table(pos, comp, 0.7, 3, batch=batch, backend="native")
+    grid = component_radius_table(pos, comp, 0.7, 3, batch=batch, backend="grid")
+    assert torch.equal(native[0], grid[0]) and torch.equal(native[1], grid[1])
+    with pytest.raises(ValueError, match="backend='native' is not implemented"):
+        plain_radius_graph(pos, 0.5, backend="native")
+    with pytest.raises(ValueError, match="mode='radius' has no native search"):
+        ComponentRadiusGraph(mode="radius", backend="native")
+
+
+def test_native_search_with_coarser_cells_than_the_radius(monkeypatch, auto_backend):
+    """A far-flung cloud would need too many cells of edge r: the cells grow, the result stays."""
+    import torch_ampn.transforms._native as native
+
+    if auto_backend == "grid":
+        pytest.skip("the native search is switched off in this pass")
+    pos, comp = random_cloud(300, 3, seed=12, lattice=0.25)
+    pos[:5] += 1000.0  # a few far nodes stretch the bounding box
+    expected = reference_table(pos, comp, 0.6, 2, 3)
+    monkeypatch.setattr(native, "MAX_CELLS", 64)
+    assert_table(component_radius_table(pos, comp, 0.6, 2, backend="native"), expected)

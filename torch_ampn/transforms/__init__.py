@@ -1,6 +1,7 @@
 """Graph transforms: contact edges between components."""
 
 from torch_ampn.transforms._cluster import torch_cluster_available
+from torch_ampn.transforms._native import native_available
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 from torch_ampn.transforms.radius import (
     component_radius_graph,
@@ -13,6 +14,7 @@ __all__ = [
     "ComponentRadiusGraph",
     "component_radius_graph",
     "component_radius_table",
+    "native_available",
     "plain_radius_graph",
     "table_to_edge_index",
     "torch_cluster_available",

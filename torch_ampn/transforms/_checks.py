@@ -12,8 +12,9 @@ import torch
 from torch import Tensor
 
 from torch_ampn.transforms._cluster import torch_cluster_available
+from torch_ampn.transforms._native import native_available
 
-BACKENDS = ("auto", "grid", "torch_cluster")
+BACKENDS = ("auto", "grid", "native", "torch_cluster")
 
 
 def check_positions(pos: Tensor) -> None:
@@ -58,13 +59,22 @@ def check_labels(labels: Tensor, num_nodes: int, name: str) -> None:
         raise ValueError(f"{name} contains negative ids (smallest {int(labels.min())})")
 
 
-def check_backend(backend: str) -> str:
-    """The backend that runs for ``backend`` (``"auto"`` resolved), checked available."""
+def check_backend(backend: str, device: torch.device | None = None) -> str:
+    """The backend that runs for ``backend``, checked available.
+
+    ``"auto"`` is ``"native"`` for positions on the CPU (``device``) where a C compiler built
+    it, else ``"grid"``; without a ``device`` (callers that have no native search) ``"grid"``.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "torch_cluster" and not torch_cluster_available():
         raise ValueError("backend='torch_cluster' needs the optional package torch-cluster")
-    return "grid" if backend == "auto" else backend
+    if backend == "native" and not native_available():
+        raise ValueError("backend='native' needs a C compiler (cc, or the one $CC names)")
+    if backend == "auto":
+        on_cpu = device is not None and torch.device(device).type == "cpu"
+        return "native" if on_cpu and native_available() else "grid"
+    return backend
 
 
 def check_cell_size(cell_size: float | None) -> None:

@@ -95,6 +95,8 @@ class ComponentRadiusGraph(BaseTransform):
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if positions not in POSITIONS:
             raise ValueError(f"positions must be one of {POSITIONS}, got {positions!r}")
+        if mode == "radius" and backend == "native":
+            raise ValueError("mode='radius' has no native search: use backend='grid' or 'auto'")
         if mode == "radius" and (self.static or self.merge_levels):
             raise ValueError("mode='radius' has no fixed-size tables: use static=False, merge_levels=False")
         self.mode = mode

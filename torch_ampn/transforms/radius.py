@@ -32,7 +32,11 @@ Backends (all give identical results):
 * ``"torch_cluster"``: candidate pairs from ``torch_cluster.radius`` (optional dependency;
   compiled, but it returns all neighbours of every component before selection;
   :mod:`torch_ampn.transforms._cluster`).
-* ``"auto"``: ``"grid"`` (``benchmarks/contact.py`` compares the two).
+* ``"native"``: the same cell grid in C, CPU only, compiled with the system C compiler at
+  first use (:mod:`torch_ampn.transforms._native`): one pass instead of a few hundred small
+  kernels, which is what a CPU rollout on a small mesh waits for.
+* ``"auto"``: ``"native"`` for positions on the CPU where a C compiler is there, else
+  ``"grid"`` (``benchmarks/contact.py`` compares them).
 
 The transform :class:`~torch_ampn.transforms.contact.ComponentRadiusGraph` applies
 :func:`component_radius_table` to every level of a hierarchy.
@@ -55,6 +59,7 @@ from torch_ampn.transforms._checks import (
 from torch_ampn.transforms._cluster import cluster_pairs, cluster_table
 from torch_ampn.transforms._grid import CellGrid, cells_needed, squared_distance
 from torch_ampn.transforms._grid_search import default_cell_size, grid_table
+from torch_ampn.transforms._native import native_table
 
 
 def component_radius_table(
@@ -84,7 +89,7 @@ def component_radius_table(
         num_components: ``C``; defaults to ``component.max() + 1``. Pass it to keep the
             table width fixed when some components may be missing.
         batch: Optional ``[N]`` graph id of every node (as in PyG's ``Batch``).
-        backend: ``"auto"``, ``"grid"`` or ``"torch_cluster"`` (see the module docs).
+        backend: ``"auto"``, ``"grid"``, ``"native"`` or ``"torch_cluster"`` (see the module docs).
         cell_size: Cell edge of the ``"grid"`` backend (a speed knob, never changes the
             result); defaults to
             :func:`~torch_ampn.transforms._grid_search.auto_cell_size`.
@@ -97,11 +102,13 @@ def component_radius_table(
     r = check_radius(r)
     k = check_count(k, "k")
     check_cell_size(cell_size)
-    backend = check_backend(backend)
+    backend = check_backend(backend, pos.device)
     comp, num_comp = prepare_components(component, pos, num_components)
     batch, num_graphs = prepare_batch(batch, pos)
     if backend == "torch_cluster":
         return cluster_table(pos, comp, batch, r, k, num_comp)
+    if backend == "native":
+        return native_table(pos, comp, batch, num_graphs, r, k, num_comp)
     return grid_table(pos, comp, batch, num_graphs, r, k, num_comp, cell_size)
 
 
@@ -188,6 +195,8 @@ def plain_radius_graph(
     check_positions(pos)
     r = check_radius(r)
     check_cell_size(cell_size)
+    if backend == "native":
+        raise ValueError("plain_radius_graph: backend='native' is not implemented; use 'grid' or 'auto'")
     backend = check_backend(backend)
     batch, num_graphs = prepare_batch(batch, pos)
     n = pos.size(0)
