@@ -600,3 +600,29 @@ def test_native_search_with_coarser_cells_than_the_radius(monkeypatch, auto_back
     expected = reference_table(pos, comp, 0.6, 2, 3)
     monkeypatch.setattr(native, "MAX_CELLS", 64)
     assert_table(component_radius_table(pos, comp, 0.6, 2, backend="native"), expected)
+
+
+def test_without_a_c_compiler_auto_falls_back_to_the_grid(monkeypatch, tmp_path, auto_backend):
+    """No compiler (``$CC`` names none, nothing cached): the PyTorch grid, and a clear error for 'native'."""
+    import torch_ampn.transforms._checks as checks
+    import torch_ampn.transforms._native as native
+
+    if auto_backend == "grid":
+        pytest.skip("the native search is switched off in this pass")
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setenv("TORCH_AMPN_CACHE", str(tmp_path / "cache"))
+    native._library.cache_clear()
+    try:
+        assert not native.native_available() and not checks.native_available()
+        assert checks.check_backend("auto", torch.device("cpu")) == "grid"
+        pos, comp = random_cloud(50, 3, seed=1)
+        with pytest.raises(ValueError, match="backend='native' needs a C compiler"):
+            component_radius_table(pos, comp, 0.5, 1, backend="native")
+        assert_table(component_radius_table(pos, comp, 0.5, 1), reference_table(pos, comp, 0.5, 1, 3))
+        # with a compiler the library is built into the cache folder
+        monkeypatch.delenv("CC")
+        native._library.cache_clear()
+        assert native.native_available()
+        assert len(list((tmp_path / "cache").glob("ampn_native_*.so"))) == 1
+    finally:
+        native._library.cache_clear()
