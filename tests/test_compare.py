@@ -15,6 +15,8 @@ import yaml
 
 pytest.importorskip("lightning")
 
+from torch_ampn.testing import tiny_cli_config  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -32,41 +34,7 @@ def setup(tmp_path_factory, small_sim):
 
     root = tmp_path_factory.mktemp("compare")
     generate_dataset(root / "data", 2, 1, 1, config=small_sim, workers=1, compile=False, progress=False)
-    config = {
-        "seed_everything": 0,
-        "trainer": {
-            "accelerator": "cpu",
-            "devices": 1,
-            "max_steps": 1000,
-            "val_check_interval": 1000,
-            "check_val_every_n_epoch": None,
-            "enable_model_summary": False,
-            "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "x"}},
-            "callbacks": [
-                {
-                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                    "init_args": {"dirpath": "x", "monitor": "val/rollout_rmse", "mode": "min"},
-                }
-            ],
-        },
-        "model": {
-            "hidden_channels": 8,
-            "mlp_channels": 8,
-            "num_levels": 2,
-            "pre_layers": 1,
-            "down_layers": 1,
-            "solve_layers": 1,
-            "post_layers": 1,
-            "up_layers": 1,
-            "contact_radius": 12.0,
-            "contact_k": 1,
-            "warmup_steps": 1,
-            "statistics_samples": 8,
-            "touch_radii": [3.0, 9.0],
-            "export_xdmf": False,
-        },  # fmt: skip
-        "data": {"data_dir": "unused", "generate": False, "min_coarse_nodes": 4, "batch_size": 2},
-    }
+    config = tiny_cli_config(data={"generate": False})
     (root / "tiny.yaml").write_text(yaml.safe_dump(config))
     args = [
         "--config", str(root / "tiny.yaml"), "--data-dir", str(root / "data"), "--steps", "3",

@@ -11,6 +11,8 @@ import yaml
 
 pytest.importorskip("lightning")
 
+from torch_ampn.testing import tiny_cli_config  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -23,42 +25,7 @@ def _load_family_bench():
 
 
 def _config(simulator: dict, **model) -> dict:
-    return {
-        "seed_everything": 0,
-        "trainer": {
-            "accelerator": "cpu",
-            "devices": 1,
-            "max_steps": 1000,
-            "val_check_interval": 1000,
-            "check_val_every_n_epoch": None,
-            "enable_model_summary": False,
-            "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "x"}},
-            "callbacks": [
-                {
-                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                    "init_args": {"dirpath": "x", "monitor": "val/rollout_rmse", "mode": "min"},
-                }
-            ],
-        },
-        "model": {
-            "hidden_channels": 8,
-            "mlp_channels": 8,
-            "num_levels": 2,
-            "pre_layers": 1,
-            "down_layers": 1,
-            "solve_layers": 1,
-            "post_layers": 1,
-            "up_layers": 1,
-            "contact_radius": 12.0,
-            "contact_k": 1,
-            "warmup_steps": 1,
-            "statistics_samples": 8,
-            "touch_radii": [3.0, 9.0],
-            "export_xdmf": False,
-            **model,
-        },  # fmt: skip
-        "data": {"data_dir": "unused", "min_coarse_nodes": 4, "batch_size": 2, "simulator": simulator},
-    }
+    return tiny_cli_config(model=model, data={"simulator": simulator})
 
 
 @pytest.fixture(scope="module")

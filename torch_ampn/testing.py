@@ -269,3 +269,50 @@ def small_trajectory(steps: int = 4, seed: int = 0) -> Trajectory:
         gripper_force=torch.tensor([42.0]),
         meta=dict(seed=seed),
     )
+
+
+def tiny_cli_config(
+    model: dict[str, Any] | None = None, data: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """A ``torch-ampn`` config (as a dict) that fits a d = 8, 2-level model in seconds.
+
+    For the benchmark scripts' end-to-end tests: a CSV logger and a checkpoint callback
+    (their folders are set by the scripts), validation rollouts monitored, no XDMF output.
+    ``model`` and ``data`` entries are added to (and override) the defaults.
+    """
+    return {
+        "seed_everything": 0,
+        "trainer": {
+            "accelerator": "cpu",
+            "devices": 1,
+            "max_steps": 1000,
+            "val_check_interval": 1000,
+            "check_val_every_n_epoch": None,
+            "enable_model_summary": False,
+            "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "x"}},
+            "callbacks": [
+                {
+                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+                    "init_args": {"dirpath": "x", "monitor": "val/rollout_rmse", "mode": "min"},
+                }
+            ],
+        },
+        "model": {
+            "hidden_channels": 8,
+            "mlp_channels": 8,
+            "num_levels": 2,
+            "pre_layers": 1,
+            "down_layers": 1,
+            "solve_layers": 1,
+            "post_layers": 1,
+            "up_layers": 1,
+            "contact_radius": 12.0,
+            "contact_k": 1,
+            "warmup_steps": 1,
+            "statistics_samples": 8,
+            "touch_radii": [3.0, 9.0],
+            "export_xdmf": False,
+            **(model or {}),
+        },  # fmt: skip
+        "data": {"data_dir": "unused", "min_coarse_nodes": 4, "batch_size": 2, **(data or {})},
+    }
