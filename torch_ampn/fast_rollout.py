@@ -33,6 +33,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torch_ampn._heap import retained_heap
+from torch_ampn.compile_passes import UnfuseBiasAdd
 from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
@@ -149,6 +151,9 @@ class FastRollout:
             (``"auto"``, ``"dense"``, ``"patches"``, ``"verlet"`` or ``"search"``), or one per level.
         skin: Verlet skin (default: the level's radius).
         capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
+        retain_heap: On the CPU, keep freed memory in the process heap while a rollout runs
+            (:func:`torch_ampn._heap.retained_heap`, glibc only), so that the step's buffers
+            are not faulted in afresh at every step.
 
     Example::
 
@@ -166,6 +171,7 @@ class FastRollout:
         candidates: str | Sequence[str] = "auto",
         skin: float | None = None,
         capacity: int | None = None,
+        retain_heap: bool = True,
     ) -> None:
         reason = fast_path_supported(surrogate)
         if reason is not None:
@@ -174,6 +180,7 @@ class FastRollout:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.surrogate = surrogate
         self.batch_size = b = batch_size
+        self.retain_heap = retain_heap
         self.device = torch.device(device) if device is not None else next(surrogate.parameters()).device
         self.num_levels = surrogate.num_levels
         if hierarchy.num_levels < self.num_levels:
@@ -260,13 +267,19 @@ class FastRollout:
         self._inputs, self._network, self._fused = self._step_inputs, None, None
         if compile:
             # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
-            mode = "reduce-overhead" if self.device.type == "cuda" else None
+            # on the CPU the bias additions go into the fused kernels (see compile_passes)
+            cuda = self.device.type == "cuda"
+            cpu_options = {"post_grad_custom_post_pass": UnfuseBiasAdd()}
             if s.diffusion_steps == 1:  # the whole step in one graph
-                self._fused = torch.compile(self._step_fused, dynamic=False, mode=mode)
+                if cuda:
+                    self._fused = torch.compile(self._step_fused, dynamic=False, mode="reduce-overhead")
+                else:
+                    self._fused = torch.compile(self._step_fused, dynamic=False, options=cpu_options)
             else:  # K network calls per step: the inputs once, the network K times (no CUDA graphs:
                 # a replay would overwrite the outputs of the other graph that are still in use)
-                self._inputs = torch.compile(self._step_inputs, dynamic=False)
-                self._network = torch.compile(s.model, dynamic=False)
+                options = None if cuda else cpu_options
+                self._inputs = torch.compile(self._step_inputs, dynamic=False, options=options)
+                self._network = torch.compile(s.model, dynamic=False, options=options)
             self.compiled = True
 
     # ---- one step ---------------------------------------------------------------------------
@@ -499,21 +512,22 @@ class FastRollout:
 
             iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
         zero = torch.zeros_like(pred[0])
-        for t in iterator:
-            pos = pred[t - 1]
-            prev_disp = pos - pred[t - 2] if t >= 2 else zero
-            bc_disp = torch.where(ply[:, None], zero, tool_path[t] - pos)
-            gripper_pos = pos[gripper_nodes].mean(2)  # [B, G, 3], as Trajectory.gripper_positions
-            d = anchor - gripper_pos
-            gripper_force = magnitude * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            inputs = (pos, prev_disp, bc_disp, gripper_pos, gripper_force, fiber, pos0_l)
-            noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
-            if self.surrogate.diffusion_steps == 1:
-                (du,) = self._checked(self._call_fused, *inputs, noise)
-            else:
-                x_dict, index_dict, e_dict, mask_dict, slots = self._checked(self._call_inputs, *inputs)
-                du = self._residual(x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise)
-            pred[t] = torch.where(ply[:, None], pos + du, pred[t])
+        with retained_heap(self.retain_heap and dev.type == "cpu"):  # no page faults per step
+            for t in iterator:
+                pos = pred[t - 1]
+                prev_disp = pos - pred[t - 2] if t >= 2 else zero
+                bc_disp = torch.where(ply[:, None], zero, tool_path[t] - pos)
+                gripper_pos = pos[gripper_nodes].mean(2)  # [B, G, 3], as Trajectory.gripper_positions
+                d = anchor - gripper_pos
+                gripper_force = magnitude * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                inputs = (pos, prev_disp, bc_disp, gripper_pos, gripper_force, fiber, pos0_l)
+                noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
+                if self.surrogate.diffusion_steps == 1:
+                    (du,) = self._checked(self._call_fused, *inputs, noise)
+                else:
+                    x_dict, index_dict, e_dict, mask_dict, slots = self._checked(self._call_inputs, *inputs)
+                    du = self._residual(x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise)
+                pred[t] = torch.where(ply[:, None], pos + du, pred[t])
         return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
 
     def _residual(
