@@ -250,6 +250,7 @@ def figure(family: dict, args: argparse.Namespace, path: Path) -> Path:
     module = AMPNLightningModule.load_from_checkpoint(ROOT / family["checkpoint"], map_location="cpu").eval()
     cases = best_and_worst(family)
     fig = plt.figure(figsize=(10, 3.4 * len(cases)))
+    fig.subplots_adjust(left=0.0, right=0.88, bottom=0.02, top=0.96, hspace=0.25, wspace=0.0)
     for i, (set_name, entry) in enumerate(cases):
         data_dir = args.family_data if set_name == "inside" else _extrapolation_dir(args, set_name)
         dm = AMPNDataModule(str(data_dir), generate=False, max_levels=module.hparams.num_levels)
@@ -262,6 +263,7 @@ def figure(family: dict, args: argparse.Namespace, path: Path) -> Path:
         kind = "best" if i % 2 == 0 else "worst"
         for j, (label, pos) in enumerate((("predicted", pred[-1]), ("true", traj.pos[-1]))):
             ax = fig.add_subplot(len(cases), 2, 2 * i + j + 1, projection="3d")
+            box = ax.get_position()
             last = plot_laminate(
                 ax, pos, traj.cells, traj.node_type, u3[label], vmin, 0.0, show_tools=False, components=[0]
             )
@@ -271,8 +273,9 @@ def figure(family: dict, args: argparse.Namespace, path: Path) -> Path:
                 f"(baseline {entry['best_baseline']:.2f})",
                 fontsize=8,
             )
-        fig.colorbar(last, ax=fig.axes[-2:], shrink=0.6, label="e3 displacement [mm]")
-    fig.subplots_adjust(left=0.0, right=0.9, bottom=0.02, top=0.96, hspace=0.25, wspace=0.0)
+        # the row's own colour bar, right of its two panels
+        cax = fig.add_axes((0.9, box.y0 + 0.15 * box.height, 0.012, 0.7 * box.height))
+        fig.colorbar(last, cax=cax, label="e3 displacement [mm]")
     path.parent.mkdir(parents=True, exist_ok=True)
     _atomic_write(path, lambda p: fig.savefig(p, dpi=80, format="png"))
     plt.close(fig)
