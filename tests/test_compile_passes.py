@@ -31,7 +31,7 @@ def test_bias_goes_into_the_following_pointwise_op_but_not_into_a_matmul():
     targets = _targets(gm)
     assert targets.count(aten.addmm.default) == 1  # h = linear(x): its user is a matrix product
     assert targets.count(aten.mm.default) == 2 and aten.add.Tensor in targets
-    for got, want in zip(gm(x, e), expected):
+    for got, want in zip(gm(x, e), expected, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
@@ -44,7 +44,8 @@ def test_scaled_addmm_is_left_alone():
 
 def test_compiled_with_the_pass_equals_eager():
     torch.manual_seed(0)
-    net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.LayerNorm(16), torch.nn.SiLU(), torch.nn.Linear(16, 3))
+    nn = torch.nn
+    net = nn.Sequential(nn.Linear(5, 16), nn.LayerNorm(16), nn.SiLU(), nn.Linear(16, 3))
     x = torch.randn(40, 5)
     compiled = torch.compile(net, options={"post_grad_custom_post_pass": UnfuseBiasAdd()})
     with torch.no_grad():
