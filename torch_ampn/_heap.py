@@ -3,7 +3,7 @@
 A compiled CPU step allocates its intermediate buffers (``[E, d]`` edge features, about 1 MB
 each on the default mesh) with ``malloc``. With glibc's adaptive thresholds every step hands
 most of them back to the operating system (``munmap`` or a heap trim) and faults the pages in
-again at the next step; on the 2-core development VM these page faults were about a fifth of
+again at the next step; on the 2-core development VM these page faults were about a tenth of
 a fast quickstart rollout (2026-11-29, ``benchmarks/rollout.py``). :func:`retained_heap` sets
 glibc's ``M_MMAP_THRESHOLD`` to its maximum (32 MiB: smaller buffers come from the heap) and
 ``M_TRIM_THRESHOLD`` high for the duration, so the step reuses the pages of the previous one.

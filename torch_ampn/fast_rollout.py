@@ -269,15 +269,12 @@ class FastRollout:
             # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
             # on the CPU the bias additions go into the fused kernels (see compile_passes)
             cuda = self.device.type == "cuda"
-            cpu_options = {"post_grad_custom_post_pass": UnfuseBiasAdd()}
+            options = None if cuda else {"post_grad_custom_post_pass": UnfuseBiasAdd()}
             if s.diffusion_steps == 1:  # the whole step in one graph
-                if cuda:
-                    self._fused = torch.compile(self._step_fused, dynamic=False, mode="reduce-overhead")
-                else:
-                    self._fused = torch.compile(self._step_fused, dynamic=False, options=cpu_options)
+                fused = {"mode": "reduce-overhead"} if cuda else {"options": options}
+                self._fused = torch.compile(self._step_fused, dynamic=False, **fused)
             else:  # K network calls per step: the inputs once, the network K times (no CUDA graphs:
                 # a replay would overwrite the outputs of the other graph that are still in use)
-                options = None if cuda else cpu_options
                 self._inputs = torch.compile(self._step_inputs, dynamic=False, options=options)
                 self._network = torch.compile(s.model, dynamic=False, options=options)
             self.compiled = True
