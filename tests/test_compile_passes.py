@@ -35,6 +35,27 @@ def test_bias_goes_into_the_following_pointwise_op_but_not_into_a_matmul():
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
+def test_a_chain_of_addmm_is_unfused_from_its_end():
+    # a linear map of a concatenation, as Inductor splits it: addmm(addmm(b, x, Wx), y, Wy)
+    torch.manual_seed(1)
+    wx, wy, b = torch.randn(5, 4, dtype=torch.float64), torch.randn(3, 4, dtype=torch.float64), torch.randn(4)
+    b = b.double()
+
+    def f(x, y):
+        return torch.tanh(torch.addmm(torch.addmm(b, x, wx), y, wy))
+
+    x, y = torch.randn(7, 5, dtype=torch.float64), torch.randn(7, 3, dtype=torch.float64)
+    gm = make_fx(f)(x, y)
+    assert _targets(gm).count(aten.addmm.default) == 2
+    UnfuseBiasAdd()(gm.graph)
+    gm.recompile()
+    targets = _targets(gm)
+    assert aten.addmm.default not in targets  # the inner one too, once its user is an add
+    assert targets.count(aten.mm.default) == 2 and targets.count(aten.add.Tensor) == 2
+    want = torch.tanh(b + x @ wx + y @ wy)
+    torch.testing.assert_close(gm(x, y), want, rtol=1e-12, atol=1e-12)
+
+
 def test_scaled_addmm_is_left_alone():
     a, b, c = torch.randn(3, 2), torch.randn(2, 4), torch.randn(3, 4)
     gm = make_fx(lambda a, b, c: torch.relu(torch.addmm(c, a, b, beta=0.5)))(a, b, c)

@@ -30,8 +30,13 @@ class UnfuseBiasAdd(CustomGraphPass):
     """
 
     def __call__(self, graph: torch.fx.Graph) -> None:
-        """Rewrite the graph in place."""
-        for node in list(graph.find_nodes(op="call_function", target=aten.addmm.default)):
+        """Rewrite the graph in place.
+
+        Users before producers: an ``addmm`` whose result is the added tensor of another
+        ``addmm`` (a linear map of a concatenation, split by Inductor into a chain) is
+        rewritten once its user has been.
+        """
+        for node in reversed(list(graph.find_nodes(op="call_function", target=aten.addmm.default))):
             if len(node.args) != 3 or any(node.kwargs.get(k, 1) != 1 for k in ("alpha", "beta")):
                 continue
             if not node.users or any(user.target in _EXTERNAL for user in node.users):
@@ -47,4 +52,4 @@ class UnfuseBiasAdd(CustomGraphPass):
 
     def uuid(self) -> str:
         """Key of this pass in Inductor's compile cache (change it when the pass changes)."""
-        return "torch_ampn.UnfuseBiasAdd/1"
+        return "torch_ampn.UnfuseBiasAdd/2"

@@ -47,7 +47,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torch_ampn.transforms._checks import check_count, check_radius, prepare_batch, prepare_components
+from torch_ampn.transforms._checks import (
+    check_backend,
+    check_count,
+    check_positions,
+    check_radius,
+    prepare_batch,
+    prepare_components,
+)
+from torch_ampn.transforms._native import native_table
 from torch_ampn.transforms._table import query_component
 from torch_ampn.transforms.radius import component_radius_table
 
@@ -346,6 +354,8 @@ class ContactCandidates:
         self.component, self.num_components = prepare_components(component, dummy, num_components)
         self.batch, self.num_graphs = prepare_batch(batch, dummy)
         self.backend = backend
+        # the C search, called directly with the checked components (no per-step checks but the positions')
+        self._native = check_backend(backend, component.device) == "native"
         self.num_groups = self.num_graphs * self.num_components
         group = self.batch * self.num_components + self.component
         largest = int(torch.bincount(group, minlength=self.num_groups).max()) if group.numel() else 0
@@ -359,17 +369,14 @@ class ContactCandidates:
     def build(self, pos: Tensor) -> CandidateState | DenseState:
         """Search the candidates around ``pos`` ``[N, 3]`` (eager; data-dependent sizes)."""
         n, c = pos.size(0), self.num_components
+        if self.mode == "search":
+            self.state = TableState(*self._search(pos, self.r, self.k))
+            self.searches += 1
+            return self.state
         slot = torch.arange(c - 1, device=pos.device)
         query_group = self.batch[:, None] * c + query_component(slot[None, :], self.component[:, None])
         group = self.batch * c + self.component
         p = pos.double()
-        if self.mode == "search":
-            nbr, mask = component_radius_table(
-                pos, self.component, self.r, self.k, num_components=c, batch=self.batch, backend=self.backend
-            )
-            self.state = TableState(nbr, mask)
-            self.searches += 1
-            return self.state
         if self.mode == "dense":
             if self.state is None:
                 members, used = _group_members(group, self.num_groups)
@@ -383,9 +390,7 @@ class ContactCandidates:
             self.searches += 1
             return self.state
         m, reach = self.capacity, self.r + self.skin
-        nbr, mask = component_radius_table(
-            pos, self.component, reach, m, num_components=c, batch=self.batch, backend=self.backend
-        )
+        nbr, mask = self._search(pos, reach, m)
         nbr, mask = nbr.view(n, c - 1, m), mask.view(n, c - 1, m)
         d = p[nbr] - p[:, None, None, :]
         d2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
@@ -403,6 +408,16 @@ class ContactCandidates:
         )
         self.searches += 1
         return self.state
+
+    def _search(self, pos: Tensor, r: float, k: int) -> tuple[Tensor, Tensor]:
+        """:func:`~torch_ampn.transforms.component_radius_table` of this object's components."""
+        if self._native and pos.device.type == "cpu":
+            check_positions(pos)
+            return native_table(pos, self.component, self.batch, self.num_graphs, r, k, self.num_components)
+        c = self.num_components
+        return component_radius_table(
+            pos, self.component, r, k, num_components=c, batch=self.batch, backend=self.backend
+        )
 
     def select(self, pos: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """:func:`select_candidates` on the current state (no search)."""
