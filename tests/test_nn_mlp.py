@@ -45,6 +45,26 @@ def test_forward_edges_matches_concatenated_mlp_float64(same_nodes, sizes):
         torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
 
 
+def test_forward_edges_with_residual_adds_the_linear_map_of_the_edge_features():
+    torch.manual_seed(1)
+    mlp = _randomised_mlp(4 + 4 + 5, 3, 16)
+    x = torch.randn(9, 4, dtype=torch.float64)
+    edge_index = torch.stack([torch.randint(0, 9, (30,)), torch.randint(0, 9, (30,))])
+    edge_attr = torch.randn(30, 5, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(3, 5, dtype=torch.float64, requires_grad=True)
+
+    out = mlp.forward_edges(x, x, edge_attr, edge_index, residual=w)
+    ref = edge_attr @ w.t() + _reference(mlp, x, x, edge_attr, edge_index)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    grad_out = torch.randn_like(out)
+    for g, g_ref in zip(
+        torch.autograd.grad(out, [edge_attr, w], grad_out),
+        torch.autograd.grad(ref, [edge_attr, w], grad_out),
+        strict=True,
+    ):
+        torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
+
+
 def test_forward_edges_float32_stable_for_large_mean_features():
     """Features with a mean far above their spread: no E[x^2] - E[x]^2 cancellation."""
     torch.manual_seed(1)

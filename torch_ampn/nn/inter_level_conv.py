@@ -70,9 +70,9 @@ class InterLevelConv(EmbeddingConv):
         """
         x_src, x_dst = x
         size = (x_src.size(0), x_dst.size(0))
-        edge_attr = self.lin_edge(edge_attr) + self.mlp_edge.forward_edges(
-            x_dst, x_src, edge_attr, edge_index
-        )  # [E, d]
+        edge_attr = self.mlp_edge.forward_edges(
+            x_dst, x_src, edge_attr, edge_index, self.lin_edge.weight
+        )  # [E, d]: W e + f(k_i, k_j, e)
         agg = self.aggregate_edges(edge_index, edge_attr, size, slots)  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr

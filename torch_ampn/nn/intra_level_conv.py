@@ -94,10 +94,9 @@ class IntraLevelConv(EmbeddingConv):
             ``(x, e_mesh, e_contact)`` with the shapes of the inputs.
         """
         num_nodes = x.size(0)
-        e_contact = self.lin_contact(e_contact) + self.mlp_contact.forward_edges(
-            x, x, e_contact, contact_index
-        )  # [M, d]
-        e_mesh = self.lin_mesh(e_mesh) + self.mlp_mesh.forward_edges(x, x, e_mesh, mesh_index)  # [E, d]
+        # W e + f(k_i, k_j, e), the residual map sharing the MLP's product with e
+        e_contact = self.mlp_contact.forward_edges(x, x, e_contact, contact_index, self.lin_contact.weight)
+        e_mesh = self.mlp_mesh.forward_edges(x, x, e_mesh, mesh_index, self.lin_mesh.weight)  # [E, d]
 
         size = (num_nodes, num_nodes)
         agg_mesh = self.aggregate_edges(mesh_index, e_mesh, size, mesh_slots)  # [N, d]

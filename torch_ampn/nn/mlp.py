@@ -46,7 +46,14 @@ class LayerNormMLP(nn.Module):
         """Apply the MLP: ``[*, in_channels] -> [*, out_channels]``."""
         return self.lin2(self.act(self.lin1(self.norm(x))))
 
-    def forward_edges(self, x_dst: Tensor, x_src: Tensor, edge_attr: Tensor, edge_index: Tensor) -> Tensor:
+    def forward_edges(
+        self,
+        x_dst: Tensor,
+        x_src: Tensor,
+        edge_attr: Tensor,
+        edge_index: Tensor,
+        residual: Tensor | None = None,
+    ) -> Tensor:
         r"""``self(cat([x_dst[i], x_src[j], edge_attr]))`` of every edge ``(j, i)``, uncatenated.
 
         The same function as the plain call on the gathered, concatenated input (up to float
@@ -63,6 +70,9 @@ class LayerNormMLP(nn.Module):
             x_src: Source node features ``[N_src, F_src]`` (may be ``x_dst``).
             edge_attr: Edge features ``[E, F_edge]``; ``F_dst + F_src + F_edge = in_channels``.
             edge_index: ``[2, E]``, rows ``(source j, target i)``.
+            residual: Optional weight ``[out_channels, F_edge]`` of a bias-free linear map of
+                ``edge_attr`` to add to the output (the residual map of a message-passing
+                layer); it shares one matrix product with the first layer's edge block.
 
         Returns:
             ``[E, out_channels]``.
@@ -83,7 +93,13 @@ class LayerNormMLP(nn.Module):
             z_dst, stats_dst = x_dst @ w_dst.t(), _row_stats(x_dst)  # [N_dst, H], [N_dst, 2]
             z_src, stats_src = x_src @ w_src.t(), _row_stats(x_src)  # [N_src, H], [N_src, 2]
         src, dst = edge_index
-        z = z_dst.index_select(0, dst) + z_src.index_select(0, src) + edge_attr @ w_edge.t()  # [E, H]
+        if residual is None:
+            z_edge = edge_attr @ w_edge.t()  # [E, H]
+        else:  # one product for both maps of the edge features
+            z_edge, res = (edge_attr @ torch.cat([w_edge, residual]).t()).split(  # [E, H], [E, out]
+                [weight.size(0), residual.size(0)], dim=-1
+            )
+        z = z_dst.index_select(0, dst) + z_src.index_select(0, src) + z_edge  # [E, H]
         blocks = [
             (f_dst, stats_dst.index_select(0, dst)),
             (f_src, stats_src.index_select(0, src)),
@@ -92,7 +108,8 @@ class LayerNormMLP(nn.Module):
         var = _pooled_variance(blocks, self.in_channels)  # [E, 1]
         bias = self.lin1.bias + self.lin1.weight @ self.norm.bias  # [H]: W_1 beta + b_1
         hidden = z * torch.rsqrt(var + self.norm.eps) + bias  # [E, H]
-        return self.lin2(self.act(hidden))
+        out = self.lin2(self.act(hidden))  # [E, out]
+        return out if residual is None else out + res
 
     def __repr__(self) -> str:
         return (
