@@ -191,12 +191,28 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
     runner = cached_fast_rollout(s, hierarchy)
     assert runner.compiled  # it did compile (no silent fallback on this machine)
+    assert runner.cpp_wrapper  # a small step: its wrapper is C++
+    # the Python wrapper (what a large step gets by default) computes the same
+    python_wrapper = FastRollout(s, hierarchy, cpp_wrapper=False)
+    assert python_wrapper.compiled and not python_wrapper.cpp_wrapper
+    out = python_wrapper([traj], [torch.Generator().manual_seed(3)], num_steps=5)[0]
+    torch.testing.assert_close(out, ref[:6], atol=1e-4, rtol=0)
     robin = _surrogate(traj, hierarchy, diffusion_steps=3)  # K > 1: inputs and network compiled apart
     g = torch.Generator().manual_seed(3)
     ref = rollout(lambda d: robin.predict_residual(d, g), traj, hierarchy, robin.contact, num_steps=4)
     out = rollout(robin, traj, hierarchy, fast=True, generator=torch.Generator().manual_seed(3), num_steps=4)
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
     assert cached_fast_rollout(robin, hierarchy).compiled
+
+
+def test_cpp_wrapper_by_default_only_where_the_step_is_small(long_run, hierarchy):
+    s = _surrogate(long_run[0], hierarchy)  # d = 32
+    n = long_run[0].num_nodes
+    fits = FastRollout.CPP_WRAPPER_LIMIT // (n * 32)  # the largest batch within the limit
+    assert FastRollout(s, hierarchy, batch_size=fits).cpp_wrapper  # nothing compiles before a call
+    assert not FastRollout(s, hierarchy, batch_size=fits + 1).cpp_wrapper
+    assert FastRollout(s, hierarchy, batch_size=fits + 1, cpp_wrapper=True).cpp_wrapper
+    assert not FastRollout(s, hierarchy, compile=False).cpp_wrapper
 
 
 def test_a_batch_of_settings_equals_its_settings_one_by_one(long_run, hierarchy):

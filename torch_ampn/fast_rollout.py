@@ -154,12 +154,20 @@ class FastRollout:
         retain_heap: On the CPU, keep freed memory in the process heap while a rollout runs
             (:func:`torch_ampn._heap.retained_heap`, glibc only), so that the step's buffers
             are not faulted in afresh at every step.
+        cpp_wrapper: On the CPU, let Inductor write the compiled step's wrapper in C++, so
+            that its kernel calls are not made from Python. ``None`` (default): where the
+            step is bound by calls rather than arithmetic, ``B N d <=`` :attr:`CPP_WRAPPER_LIMIT`
+            (the quickstart model on the coarse mesh, not the paper's network on its mesh,
+            whose C++ wrapper took 11 minutes to compile on 2 cores for ~1 % of a step).
 
     Example::
 
         fast = FastRollout(surrogate, hierarchy, batch_size=8)
         pred = fast(trajectories, generators)  # [8, T + 1, N, 3]
     """
+
+    #: Largest ``B N d`` (settings x fine nodes x latent size) for which ``cpp_wrapper=None`` uses it.
+    CPP_WRAPPER_LIMIT = 1 << 18
 
     def __init__(
         self,
@@ -172,6 +180,7 @@ class FastRollout:
         skin: float | None = None,
         capacity: int | None = None,
         retain_heap: bool = True,
+        cpp_wrapper: bool | None = None,
     ) -> None:
         reason = fast_path_supported(surrogate)
         if reason is not None:
@@ -263,14 +272,21 @@ class FastRollout:
         ]
         self._static_contact: list[tuple[Tensor, Tensor, Tensor]] | None = None
         self._capacity = [0] * self.num_levels  # compacted contact edges per level (see _compact)
-        self.compiled = False
+        self.compiled = self.cpp_wrapper = False
         self._inputs, self._network, self._fused = self._step_inputs, None, None
         if compile:
             # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
             # on the CPU the bias additions go into the fused kernels (see compile_passes) and the
-            # kernels are called from generated C++ instead of Python (a third less time per step)
+            # kernels are called from generated C++ where calls, not arithmetic, bound the step (~10 %)
             cuda = self.device.type == "cuda"
-            options = None if cuda else {"post_grad_custom_post_pass": UnfuseBiasAdd(), "cpp_wrapper": True}
+            if cpp_wrapper is None:
+                cpp_wrapper = b * sizes[0] * s.model.hidden_channels <= self.CPP_WRAPPER_LIMIT
+            self.cpp_wrapper = bool(cpp_wrapper) and not cuda
+            options = (
+                None
+                if cuda
+                else {"post_grad_custom_post_pass": UnfuseBiasAdd(), "cpp_wrapper": self.cpp_wrapper}
+            )
             if s.diffusion_steps == 1:  # the whole step in one graph
                 fused = {"mode": "reduce-overhead"} if cuda else {"options": options}
                 self._fused = torch.compile(self._step_fused, dynamic=False, **fused)
