@@ -11,4 +11,5 @@ ruff check .
 echo "[test] pytest"
 export MPLBACKEND=Agg
 # notebook cells get 15 minutes (nbmake: 5): a loaded 2-core machine can slow them far beyond their ~10 s
-python -m pytest --nbmake --nbmake-timeout=900 tests examples/notebooks "$@"
+# --durations: the slowest tests, where the suite's time goes
+python -m pytest --nbmake --nbmake-timeout=900 --durations=15 tests examples/notebooks "$@"

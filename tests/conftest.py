@@ -3,7 +3,15 @@
 Imports are inside the fixtures, so that collecting a test file that uses none stays cheap.
 """
 
+import os
+
 import pytest
+
+# Compiled rollout steps get Inductor's Python wrapper in the tests (and in the fits and notebooks
+# they start, which inherit the environment): the C++ wrapper, FastRollout's default for small
+# steps, costs about half a minute of extra compile per mesh and batch size, and most tests roll a
+# mesh out only once. The tests of the default rule unset it (tests/test_fast_rollout.py).
+os.environ.setdefault("TORCHINDUCTOR_CPP_WRAPPER", "0")
 
 
 @pytest.fixture(scope="session")

@@ -183,7 +183,8 @@ def test_fast_rollout_of_a_stack_encoded_model_with_spare_components(long_run, h
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
 
 
-def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
+def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, monkeypatch):
+    monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)  # the default rule (conftest sets 0)
     traj = long_run[0]
     s = _surrogate(traj, hierarchy)
     ref = _plain(s, traj, hierarchy)
@@ -205,7 +206,8 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy):
     assert cached_fast_rollout(robin, hierarchy).compiled
 
 
-def test_cpp_wrapper_by_default_only_where_the_step_is_small(long_run, hierarchy):
+def test_cpp_wrapper_by_default_only_where_the_step_is_small(long_run, hierarchy, monkeypatch):
+    monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)
     s = _surrogate(long_run[0], hierarchy)  # d = 32
     n = long_run[0].num_nodes
     fits = FastRollout.CPP_WRAPPER_LIMIT // (n * 32)  # the largest batch within the limit
@@ -213,6 +215,13 @@ def test_cpp_wrapper_by_default_only_where_the_step_is_small(long_run, hierarchy
     assert not FastRollout(s, hierarchy, batch_size=fits + 1).cpp_wrapper
     assert FastRollout(s, hierarchy, batch_size=fits + 1, cpp_wrapper=True).cpp_wrapper
     assert not FastRollout(s, hierarchy, compile=False).cpp_wrapper
+    # Inductor's environment variable overrides the rule, an explicit argument overrides both
+    monkeypatch.setenv("TORCHINDUCTOR_CPP_WRAPPER", "0")
+    assert not FastRollout(s, hierarchy, batch_size=fits).cpp_wrapper
+    assert FastRollout(s, hierarchy, batch_size=fits, cpp_wrapper=True).cpp_wrapper
+    monkeypatch.setenv("TORCHINDUCTOR_CPP_WRAPPER", "1")
+    assert FastRollout(s, hierarchy, batch_size=fits + 1).cpp_wrapper
+    assert not FastRollout(s, hierarchy, batch_size=fits + 1, cpp_wrapper=False).cpp_wrapper
 
 
 def test_a_batch_of_settings_equals_its_settings_one_by_one(long_run, hierarchy):

@@ -26,6 +26,7 @@ setting draws its noise from its own generator, so a batch equals its settings o
 from __future__ import annotations
 
 import functools
+import os
 import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -135,6 +136,14 @@ def fast_path_supported(surrogate: AMPNSurrogate) -> str | None:
     return None
 
 
+def _cpp_wrapper_from_environment() -> bool | None:
+    """Inductor's ``TORCHINDUCTOR_CPP_WRAPPER`` (``"1"``: on, ``"0"``: off), ``None`` where unset."""
+    value = os.environ.get("TORCHINDUCTOR_CPP_WRAPPER")
+    if value is None or value.strip() == "":
+        return None
+    return value.strip() == "1"  # Inductor's own reading: anything but "1" is off
+
+
 class FastRollout:
     r"""Rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out over ``B`` settings of one mesh at once.
 
@@ -158,7 +167,10 @@ class FastRollout:
             that its kernel calls are not made from Python. ``None`` (default): where the
             step is bound by calls rather than arithmetic, ``B N d <=`` :attr:`CPP_WRAPPER_LIMIT`
             (the quickstart model on the coarse mesh, not the paper's network on its mesh,
-            whose C++ wrapper took 11 minutes to compile on 2 cores for ~1 % of a step).
+            whose C++ wrapper took 11 minutes to compile on 2 cores for ~1 % of a step),
+            unless Inductor's environment variable ``TORCHINDUCTOR_CPP_WRAPPER`` is set
+            (``1``: always, ``0``: never; e.g. to save the wrapper's compile, about half a
+            minute per mesh, where each mesh is rolled out only once).
 
     Example::
 
@@ -279,6 +291,8 @@ class FastRollout:
             # on the CPU the bias additions go into the fused kernels (see compile_passes) and the
             # kernels are called from generated C++ where calls, not arithmetic, bound the step (~10 %)
             cuda = self.device.type == "cuda"
+            if cpp_wrapper is None:
+                cpp_wrapper = _cpp_wrapper_from_environment()
             if cpp_wrapper is None:
                 cpp_wrapper = b * sizes[0] * s.model.hidden_channels <= self.CPP_WRAPPER_LIMIT
             self.cpp_wrapper = bool(cpp_wrapper) and not cuda
