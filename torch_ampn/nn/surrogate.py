@@ -155,14 +155,7 @@ class AMPNSurrogate(nn.Module):
     @torch.no_grad()
     def accumulate_statistics(self, data: HierarchicalData) -> None:
         """Add a training window (or batch) to the statistics of every normaliser."""
-        self._check_levels(data)
-        x_dict, e_dict = hierarchical_features(
-            data,
-            self.num_components,
-            self.num_levels,
-            alpha=self.gripper_alpha,
-            component_encoding=self.component_encoding,
-        )
+        x_dict, e_dict = self._raw_features(data)
         for lk, x in x_dict.items():
             self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
         for (_, rel, _), e in e_dict.items():
@@ -189,18 +182,22 @@ class AMPNSurrogate(nn.Module):
                 "build a deeper hierarchy (smaller min_coarse_nodes) or lower num_levels"
             )
 
-    def normalized_features(
-        self, data: HierarchicalData
-    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor]]:
-        """``(x_dict, edge_index_dict, edge_attr_dict)`` of the used levels, normalised."""
+    def _raw_features(self, data: HierarchicalData) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+        """The paper's features of the used levels with this model's settings, not normalised."""
         self._check_levels(data)
-        x_dict, e_dict = hierarchical_features(
+        return hierarchical_features(
             data,
             self.num_components,
             self.num_levels,
             alpha=self.gripper_alpha,
             component_encoding=self.component_encoding,
         )
+
+    def normalized_features(
+        self, data: HierarchicalData
+    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor]]:
+        """``(x_dict, edge_index_dict, edge_attr_dict)`` of the used levels, normalised."""
+        x_dict, e_dict = self._raw_features(data)
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
         device = data["l0"].pos.device
