@@ -513,22 +513,28 @@ def figures(
     out.mkdir(parents=True, exist_ok=True)
     written = []
     fig, ax = plt.subplots(figsize=(8, 4.8))
-    for variant in variants:
+    colors = [c for i, c in enumerate(plt.get_cmap("tab10").colors) if i != 7]  # grey: the baselines'
+    for i, variant in enumerate(variants):
         curves = [
             torch.tensor(cells[(variant, s)]["rmse_over_time"]["model"])
             for s in seeds
             if (variant, s) in cells
         ]
         if curves:
-            ax.plot(torch.stack(curves).mean(0), label=VARIANTS[variant].label, lw=1.6)
+            color = colors[i % len(colors)]
+            ax.plot(torch.stack(curves).mean(0), label=VARIANTS[variant].label, lw=1.6, color=color)
     any_cell = next(iter(cells.values()), None)
     if any_cell is not None:
         curves = any_cell["rmse_over_time"]
         rigid = [name for name in curves if name.startswith("rigid_r")]
         best = min(rigid, key=lambda name: sum(curves[name][1:])) if rigid else None  # as the table's
+        labels = {"static": "baseline: plies stay where they are"}
+        if best is not None:
+            radius = best.removeprefix("rigid_r")
+            labels[best] = f"baseline: plies within {radius} mm of the punch move with it"
         for name, style in (("static", ":"), (best, "--")):
             if name is not None:
-                ax.plot(curves[name], ls=style, color="grey", lw=1, label=f"baseline: {name}")
+                ax.plot(curves[name], ls=style, color="0.35", lw=1, label=labels[name])
     ax.set(
         xlabel="step",
         ylabel="RMSE over ply nodes [mm]",
