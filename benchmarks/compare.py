@@ -104,12 +104,8 @@ def cell_config(
     logger = trainer.get("logger")
     if isinstance(logger, dict):
         logger.setdefault("init_args", {})["save_dir"] = str(cell_dir)
-    for callback in trainer.get("callbacks") or []:
-        if callback["class_path"].endswith("ModelCheckpoint"):
-            callback.setdefault("init_args", {}).update(
-                dirpath=str(cell_dir / "checkpoints"), filename="best"
-            )
-            callback["init_args"].update(save_last=True, enable_version_counter=False)
+    others = [c for c in trainer.get("callbacks") or [] if not c["class_path"].endswith("ModelCheckpoint")]
+    trainer["callbacks"] = checkpoint_callbacks(cell_dir / "checkpoints") + others
     model = config.setdefault("model", {})
     model.update(output_dir=str(cell_dir / "test"), rollout_seed=seed)
     config.setdefault("data", {})["data_dir"] = str(args.data_dir)
@@ -118,6 +114,20 @@ def cell_config(
     for dotted, value in args.set or []:
         _set(config, dotted, yaml.safe_load(value))
     return config
+
+
+def checkpoint_callbacks(dirpath: Path) -> list[dict[str, Any]]:
+    """The two checkpoints a cell relies on: ``best.ckpt`` (lowest validation rollout RMSE, tested)
+    and ``last.ckpt`` (every validation, resumed from). Lightning >= 2.6 writes ``save_last``'s
+    copy only when the monitored checkpoint improves, so ``last.ckpt`` is a checkpoint of its own."""
+    common = {"dirpath": str(dirpath), "enable_version_counter": False}
+    return [
+        {
+            "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+            "init_args": {**common, "filename": "best", "monitor": "val/rollout_rmse", "mode": "min"},
+        },
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": {**common, "filename": "last"}},
+    ]
 
 
 def applicable(variant: str, base: dict) -> bool:
