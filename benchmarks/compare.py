@@ -121,12 +121,11 @@ def checkpoint_callbacks(dirpath: Path) -> list[dict[str, Any]]:
     and ``last.ckpt`` (every validation, resumed from). Lightning >= 2.6 writes ``save_last``'s
     copy only when the monitored checkpoint improves, so ``last.ckpt`` is a checkpoint of its own."""
     common = {"dirpath": str(dirpath), "enable_version_counter": False}
+    best = {**common, "filename": "best", "monitor": "val/rollout_rmse", "mode": "min"}
+    last = {**common, "filename": "last"}
     return [
-        {
-            "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-            "init_args": {**common, "filename": "best", "monitor": "val/rollout_rmse", "mode": "min"},
-        },
-        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": {**common, "filename": "last"}},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": init_args}
+        for init_args in (best, last)
     ]
 
 

@@ -132,8 +132,14 @@ def _checkpoint_steps(callbacks, folder):
     import lightning as L
 
     trainer = L.Trainer(
-        max_steps=6, val_check_interval=2, check_val_every_n_epoch=None, num_sanity_val_steps=0,
-        callbacks=callbacks, logger=False, enable_progress_bar=False, enable_model_summary=False,
+        max_steps=6,
+        val_check_interval=2,
+        check_val_every_n_epoch=None,
+        num_sanity_val_steps=0,
+        callbacks=callbacks,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
     )
     trainer.fit(_WorseningValidation([1.0, 2.0, 3.0]))
     load = lambda name: torch.load(folder / name, weights_only=False, map_location="cpu")  # noqa: E731
@@ -166,7 +172,8 @@ def test_compare_cells_keep_the_best_and_the_last_step(tmp_path, monkeypatch):
     import importlib
     import sys
 
-    spec = importlib.util.spec_from_file_location("compare_cells", CONFIGS.parents[1] / "benchmarks" / "compare.py")
+    path = CONFIGS.parents[1] / "benchmarks" / "compare.py"
+    spec = importlib.util.spec_from_file_location("compare_cells", path)
     compare = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "compare_cells", compare)  # dataclasses look their module up
     spec.loader.exec_module(compare)
