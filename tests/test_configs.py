@@ -6,6 +6,8 @@ files, so the test follows edits of the configs; the paper's architecture is als
 its numbers (d = 128, 15 layers, 4 levels, k = 3).
 """
 
+import importlib
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +15,9 @@ import torch
 import yaml
 
 pytest.importorskip("lightning")
+
+import lightning as L  # noqa: E402
+from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: E402
 
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
 from torch_ampn.training.cli import main  # noqa: E402
@@ -99,7 +104,7 @@ def test_quickstart_config_is_smaller_than_the_papers(tmp_path, monkeypatch):
     assert quick.trainer.accelerator.__class__.__name__ == "CPUAccelerator"
 
 
-class _WorseningValidation(__import__("lightning").LightningModule):
+class _WorseningValidation(L.LightningModule):
     """A linear model whose validation ``val/rollout_rmse`` is ``scores[i]`` at the i-th validation."""
 
     def __init__(self, scores):
@@ -129,8 +134,6 @@ class _WorseningValidation(__import__("lightning").LightningModule):
 def _checkpoint_steps(callbacks, folder):
     """Fit 6 steps, validating at steps 2, 4 and 6 with an RMSE that only gets worse after the first;
     the global steps stored in ``folder``'s ``best.ckpt`` and ``last.ckpt``."""
-    import lightning as L
-
     trainer = L.Trainer(
         max_steps=6,
         val_check_interval=2,
@@ -150,8 +153,6 @@ def _checkpoint_steps(callbacks, folder):
 def test_config_checkpoints_keep_the_best_and_the_last_step(name, tmp_path, monkeypatch):
     """``last.ckpt`` follows every validation (to resume from), ``best.ckpt`` the lowest RMSE,
     also when validation gets worse (Lightning's ``save_last`` alone would keep step 2 in both)."""
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
     cli, _ = _build(name, tmp_path, monkeypatch)
     checkpoints = [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
     folders = {Path(c.dirpath) for c in checkpoints}
@@ -162,16 +163,11 @@ def test_config_checkpoints_keep_the_best_and_the_last_step(name, tmp_path, monk
 def test_lightning_save_last_alone_lags_behind(tmp_path):
     """Why the configs carry a checkpoint of their own for ``last.ckpt``: if this starts failing,
     Lightning's ``save_last`` follows every validation again and the second callback can go."""
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
     callback = ModelCheckpoint(tmp_path, "best", monitor="val/rollout_rmse", save_last=True)
     assert _checkpoint_steps([callback], tmp_path) == (2, 2)
 
 
 def test_compare_cells_keep_the_best_and_the_last_step(tmp_path, monkeypatch):
-    import importlib
-    import sys
-
     path = CONFIGS.parents[1] / "benchmarks" / "compare.py"
     spec = importlib.util.spec_from_file_location("compare_cells", path)
     compare = importlib.util.module_from_spec(spec)
