@@ -15,7 +15,7 @@ import yaml
 
 pytest.importorskip("lightning")
 
-from torch_ampn.testing import tiny_cli_config  # noqa: E402
+from torch_ampn.testing import checkpoint_steps, tiny_cli_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,3 +120,13 @@ def test_a_killed_cell_leaves_no_result(setup):
     results = root / "results"
     assert not (results / "flat_seed0.json").exists() and not (results / "flat_seed0.states.pt").exists()
     assert not list(results.glob(".*.tmp"))
+
+
+def test_cells_keep_the_best_and_the_last_step(tmp_path):
+    """A cell's ``last.ckpt`` follows every validation (it is resumed from), ``best.ckpt`` the lowest RMSE."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    entries = _load_compare().checkpoint_callbacks(tmp_path)
+    assert {e["class_path"] for e in entries} == {"lightning.pytorch.callbacks.ModelCheckpoint"}
+    checkpoints = [ModelCheckpoint(**e["init_args"]) for e in entries]
+    assert checkpoint_steps(checkpoints, tmp_path) == (2, 6)

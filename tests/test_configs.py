@@ -6,19 +6,16 @@ files, so the test follows edits of the configs; the paper's architecture is als
 its numbers (d = 128, 15 layers, 4 levels, k = 3).
 """
 
-import importlib
-import sys
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 
 pytest.importorskip("lightning")
 
-import lightning as L  # noqa: E402
 from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: E402
 
+from torch_ampn.testing import checkpoint_steps  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
 from torch_ampn.training.cli import main  # noqa: E402
 
@@ -104,51 +101,6 @@ def test_quickstart_config_is_smaller_than_the_papers(tmp_path, monkeypatch):
     assert quick.trainer.accelerator.__class__.__name__ == "CPUAccelerator"
 
 
-class _WorseningValidation(L.LightningModule):
-    """A linear model whose validation ``val/rollout_rmse`` is ``scores[i]`` at the i-th validation."""
-
-    def __init__(self, scores):
-        super().__init__()
-        self.layer = torch.nn.Linear(2, 1)
-        self.scores, self.validations = scores, 0
-
-    def training_step(self, batch, batch_idx):
-        return self.layer(batch).square().mean()
-
-    def validation_step(self, batch, batch_idx):
-        self.log("val/rollout_rmse", self.scores[self.validations])
-
-    def on_validation_end(self):
-        self.validations += 1
-
-    def configure_optimizers(self):
-        return torch.optim.SGD(self.parameters(), lr=0.01)
-
-    def train_dataloader(self):
-        return torch.utils.data.DataLoader(torch.randn(64, 2), batch_size=1)
-
-    def val_dataloader(self):
-        return torch.utils.data.DataLoader(torch.randn(1, 2), batch_size=1)
-
-
-def _checkpoint_steps(callbacks, folder):
-    """Fit 6 steps, validating at steps 2, 4 and 6 with an RMSE that only gets worse after the first;
-    the global steps stored in ``folder``'s ``best.ckpt`` and ``last.ckpt``."""
-    trainer = L.Trainer(
-        max_steps=6,
-        val_check_interval=2,
-        check_val_every_n_epoch=None,
-        num_sanity_val_steps=0,
-        callbacks=callbacks,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-    )
-    trainer.fit(_WorseningValidation([1.0, 2.0, 3.0]))
-    load = lambda name: torch.load(folder / name, weights_only=False, map_location="cpu")  # noqa: E731
-    return load("best.ckpt")["global_step"], load("last.ckpt")["global_step"]
-
-
 @pytest.mark.parametrize("name", NAMES)
 def test_config_checkpoints_keep_the_best_and_the_last_step(name, tmp_path, monkeypatch):
     """``last.ckpt`` follows every validation (to resume from), ``best.ckpt`` the lowest RMSE,
@@ -157,24 +109,11 @@ def test_config_checkpoints_keep_the_best_and_the_last_step(name, tmp_path, monk
     checkpoints = [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
     folders = {Path(c.dirpath) for c in checkpoints}
     assert len(folders) == 1
-    assert _checkpoint_steps(checkpoints, folders.pop()) == (2, 6)
+    assert checkpoint_steps(checkpoints, folders.pop()) == (2, 6)
 
 
 def test_lightning_save_last_alone_lags_behind(tmp_path):
     """Why the configs carry a checkpoint of their own for ``last.ckpt``: if this starts failing,
     Lightning's ``save_last`` follows every validation again and the second callback can go."""
     callback = ModelCheckpoint(tmp_path, "best", monitor="val/rollout_rmse", save_last=True)
-    assert _checkpoint_steps([callback], tmp_path) == (2, 2)
-
-
-def test_compare_cells_keep_the_best_and_the_last_step(tmp_path, monkeypatch):
-    path = CONFIGS.parents[1] / "benchmarks" / "compare.py"
-    spec = importlib.util.spec_from_file_location("compare_cells", path)
-    compare = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "compare_cells", compare)  # dataclasses look their module up
-    spec.loader.exec_module(compare)
-    checkpoints = []
-    for entry in compare.checkpoint_callbacks(tmp_path):
-        module, name = entry["class_path"].rsplit(".", 1)
-        checkpoints.append(getattr(importlib.import_module(module), name)(**entry["init_args"]))
-    assert _checkpoint_steps(checkpoints, tmp_path) == (2, 6)
+    assert checkpoint_steps([callback], tmp_path) == (2, 2)

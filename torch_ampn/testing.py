@@ -7,6 +7,7 @@ a small trajectory without a simulator and a small simulator setting.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -316,3 +317,55 @@ def tiny_cli_config(
         },  # fmt: skip
         "data": {"data_dir": "unused", "min_coarse_nodes": 4, "batch_size": 2, **(data or {})},
     }
+
+
+def checkpoint_steps(callbacks: list, folder) -> tuple[int, int]:
+    """The global steps stored in ``folder``'s ``best.ckpt`` and ``last.ckpt`` after a short fit.
+
+    A linear model is fitted 6 steps with ``callbacks``, validating at steps 2, 4 and 6 with a
+    ``val/rollout_rmse`` of 1, 2, 3 (worse after the first). For the tests of the checkpoint
+    callbacks.
+    """
+    import lightning as L
+
+    class WorseningValidation(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.layer = nn.Linear(2, 1)
+            self.validations = 0
+
+        def training_step(self, batch: Tensor, batch_idx: int) -> Tensor:
+            return self.layer(batch).square().mean()
+
+        def validation_step(self, batch: Tensor, batch_idx: int) -> None:
+            self.log("val/rollout_rmse", float(self.validations + 1))
+
+        def on_validation_end(self) -> None:
+            self.validations += 1
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.01)
+
+        def train_dataloader(self):
+            return torch.utils.data.DataLoader(torch.randn(64, 2), batch_size=1)
+
+        def val_dataloader(self):
+            return torch.utils.data.DataLoader(torch.randn(1, 2), batch_size=1)
+
+    trainer = L.Trainer(
+        max_steps=6,
+        val_check_interval=2,
+        check_val_every_n_epoch=None,
+        num_sanity_val_steps=0,
+        callbacks=callbacks,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    trainer.fit(WorseningValidation())
+    folder = Path(folder)
+    steps = [
+        torch.load(folder / name, weights_only=False, map_location="cpu")["global_step"]
+        for name in ("best.ckpt", "last.ckpt")
+    ]
+    return steps[0], steps[1]
