@@ -317,3 +317,24 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hi
     assert sorted(p.name for p in (tmp_path / "predict").glob("*.png")) == [
         f"setting{i}.png" for i in range(3)
     ]
+
+
+def test_many_fast_rollouts_each_keep_their_compiled_step(long_run, hierarchy, monkeypatch):
+    """Dynamo caches compiled code per code object and stops compiling one after ``recompile_limit``
+    entries: the steps of many FastRollout objects (a design study over many meshes) must not share one."""
+    import torch._dynamo
+
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
+    monkeypatch.setattr(torch._dynamo.config, "fail_on_recompile_limit_hit", True)  # raise, not run eagerly
+    traj = long_run[0]
+    g = torch.Generator
+    for diffusion_steps in (1, 3):  # the fused step; the inputs and the network compiled apart
+        s = _surrogate(traj, hierarchy, diffusion_steps=diffusion_steps)
+        ref = FastRollout(s, hierarchy, compile=False)([traj], [g().manual_seed(3)], num_steps=3)[0]
+        for _ in range(2):
+            fast = FastRollout(s, hierarchy, cpp_wrapper=False)
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # no "runs eagerly" fallback
+                out = fast([traj], [g().manual_seed(3)], num_steps=3)[0]
+            assert fast.compiled
+            torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
