@@ -52,6 +52,8 @@ from typing import Any
 import torch
 import yaml
 
+from torch_ampn._device import device_name
+
 ROOT = Path(__file__).resolve().parents[1]
 STATE_FRACTIONS = (0.7, 0.9, 1.0)  # the process times of the paper's Fig. 2 and Fig. 3
 
@@ -200,7 +202,7 @@ def simulator_reference(data_dir: Path, compile: bool = True) -> dict[str, Any]:
 def _machine(device: str = "cpu") -> dict[str, Any]:
     return {
         "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
+        "processor": device_name("cpu"),
         "cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "torch": torch.__version__,

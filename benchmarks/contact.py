@@ -25,13 +25,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from torch_ampn._device import device_name
 from torch_ampn.data import laminate_mesh
 from torch_ampn.transforms import (
     component_radius_graph,
@@ -170,9 +170,7 @@ def main() -> None:
     print_table(rows)
     meta = {
         "device": args.device,
-        "device_name": torch.cuda.get_device_name(device)
-        if device.type == "cuda"
-        else platform.processor() or "cpu",
+        "device_name": device_name(device),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from torch_ampn._device import device_name
 from torch_ampn.nn import LayerNormMLP
 
 
@@ -137,7 +137,7 @@ def main() -> None:
     out = args.out or Path(__file__).parent / "results" / f"edge_mlp_{device.type}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads()}
-    meta["machine"] = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+    meta["machine"] = device_name(device)
     out.write_text(json.dumps({"meta": meta, **result}, indent=2))
     print(f"wrote {out}")
 

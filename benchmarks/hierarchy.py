@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from torch_ampn._device import device_name
 from torch_ampn.data import build_hierarchy, laminate_mesh
 
 
@@ -83,7 +84,7 @@ def main() -> None:
     meta = dict(
         benchmark="hierarchy",
         machine=platform.machine(),
-        processor=platform.processor(),
+        processor=device_name("cpu"),
         cpu_count=torch.get_num_threads(),
         torch=torch.__version__,
     )

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from torch_ampn._device import device_name
 from torch_ampn.data import NodeType, build_hierarchy, laminate_mesh, level_name
 from torch_ampn.nn import AMPN, Normalizer, hierarchical_features, num_fine_node_features
 
@@ -244,7 +245,7 @@ def main() -> None:
     meta = dict(
         benchmark="model",
         device=args.device,
-        device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+        device_name=device_name(device),
         machine=platform.machine(),
         threads=torch.get_num_threads(),
         torch=torch.__version__,

@@ -33,7 +33,6 @@ import datetime
 import json
 import math
 import os
-import platform
 import resource
 import statistics
 import time
@@ -42,6 +41,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from torch_ampn._device import device_name
 from torch_ampn.data import HierarchyCache, step_sample
 from torch_ampn.fast_rollout import FastRollout
 from torch_ampn.nn import AMPNSurrogate
@@ -199,9 +199,7 @@ def run(args: argparse.Namespace) -> dict:
     s = build_surrogate(trajs[0], cache(trajs[0]), network, device)
     result = {
         "date": datetime.date.today().isoformat(),
-        "device": torch.cuda.get_device_name(device)
-        if device.type == "cuda"
-        else platform.processor() or "cpu",
+        "device": device_name(device),
         "threads": torch.get_num_threads(),
         "cpus": os.cpu_count(),
         "load_average_before": os.getloadavg(),

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from torch_ampn._device import device_name
 from torch_ampn.sim import StampFormingConfig, simulate_batch
 
 
@@ -54,7 +55,7 @@ def main() -> None:
         benchmark="simulate",
         date=time.strftime("%Y-%m-%d"),
         machine=platform.machine(),
-        device=torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "cpu",
+        device=device_name(args.device),
         threads=torch.get_num_threads(),
         torch=torch.__version__,
     )

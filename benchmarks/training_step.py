@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
+
+from torch_ampn._device import device_name
 
 QUICKSTART = dict(
     hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1,
@@ -114,7 +115,7 @@ def main() -> None:
             print(f"{name}: first step (compiles) {case.compile_s:.0f} s")
     out = args.out or Path(__file__).parent / "results" / "training_step_cpu.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor()}
+    meta = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": device_name("cpu")}
     out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     print(f"wrote {out}")
 
