@@ -298,7 +298,9 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hi
     out = rollout_settings(s, trajs, hierarchy, batch_size=2, compile=False)  # batches of 2, 1 (padded)
     for i, one in enumerate(trajs):
         ref = FastRollout(s, hierarchy, compile=False)([one], [torch.Generator().manual_seed(i)])[0]
-        torch.testing.assert_close(out[i], ref, atol=1e-5, rtol=0)
+        # fp32 rounding of other blockings, grown over 50 steps: 1e-5 mm on a Xeon, 8e-5 mm on
+        # an AVX2-only EPYC; a setting mixed up with another would be off by millimetres
+        torch.testing.assert_close(out[i], ref, atol=5e-4, rtol=0)
     # the module's predict_step: a list of items is one batch, the same as item by item
     args = dict(hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1,
                 solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1,
@@ -313,7 +315,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(long_run, hi
         together = module.predict_step(items, 0)
         alone = [module.predict_step(item, 0) for item in items]
     # compiled once per batch size: the kernels round differently, and 50 autoregressive steps
-    # grow that to a few 1e-4 mm (the eager comparison above holds to 1e-5 mm)
+    # grow that to a few 1e-4 mm
     for a, b in zip(together, alone, strict=True):
         torch.testing.assert_close(a, b, atol=2e-3, rtol=0)
     assert sorted(p.name for p in (tmp_path / "predict").glob("*.png")) == [
