@@ -162,3 +162,22 @@ def test_a_batch_of_parts_with_other_ply_counts_equals_the_single_predictions():
         single = [predict(w, [n]) for w, n in zip(windows, noise, strict=True)]
         batched = predict(Batch.from_data_list(windows), [torch.cat(noise)])
     torch.testing.assert_close(batched, torch.cat(single), atol=1e-5, rtol=1e-5)
+
+
+def test_every_part_of_a_family_runs_its_own_compiled_step(monkeypatch):
+    """Parts with other meshes in one process each compile their solver step: with one entry per
+    code object allowed, a shared step would raise at the second part (by default it would run
+    the 9th part of a process eagerly, so its last bits would depend on the parts before it)."""
+    import torch._dynamo
+
+    from torch_ampn.sim import simulate_batch
+
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
+    monkeypatch.setattr(torch._dynamo.config, "fail_on_recompile_limit_hit", True)
+    family = PartFamily(num_plies=(2, 3))
+    parts = [sample_part(family, seed) for seed in (0, 1)]
+    configs = [part_config(TINY, part) for part in parts]
+    first, second = (simulate_batch(c, [5], compile=True)[0] for c in configs)
+    assert first.num_nodes != second.num_nodes  # other meshes: other compiled steps
+    again = simulate_batch(configs[0], [5], compile=True)[0]  # after another part: the same bits
+    assert torch.equal(again.pos, first.pos)

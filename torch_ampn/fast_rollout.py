@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import functools
 import os
-import types
 import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -36,6 +35,7 @@ import torch
 from torch import Tensor
 
 from torch_ampn._heap import retained_heap
+from torch_ampn._own_code import own_code
 from torch_ampn.compile_passes import UnfuseBiasAdd
 from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
 from torch_ampn.data.node_type import NodeType
@@ -56,21 +56,6 @@ from torch_ampn.transforms.radius import component_radius_table
 _CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
 #: How many :func:`cached_fast_rollout` keeps (each holds its compiled code and its hierarchy).
 CACHE_SIZE = 8
-
-
-def _own_code(method: types.MethodType) -> types.MethodType:
-    """``method`` bound to a copy of its function with a code object of its own.
-
-    Dynamo keeps compiled code per code object and, after ``recompile_limit`` (8) entries, runs
-    that code object eagerly: the compiled steps of more than 8 :class:`FastRollout` objects in
-    one process (a study over many meshes) would share one cache and the later ones would run
-    uncompiled. A copied code object gives every object its own cache, freed with it.
-    """
-    fn = method.__func__
-    code = fn.__code__.replace()  # an equal but distinct code object
-    own = types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
-    own.__kwdefaults__, own.__qualname__ = fn.__kwdefaults__, fn.__qualname__
-    return types.MethodType(own, method.__self__)
 
 
 def cached_fast_rollout(
@@ -319,11 +304,11 @@ class FastRollout:
             )
             if s.diffusion_steps == 1:  # the whole step in one graph
                 fused = {"mode": "reduce-overhead"} if cuda else {"options": options}
-                self._fused = torch.compile(_own_code(self._step_fused), dynamic=False, **fused)
+                self._fused = torch.compile(own_code(self._step_fused), dynamic=False, **fused)
             else:  # K network calls per step: the inputs once, the network K times (no CUDA graphs:
                 # a replay would overwrite the outputs of the other graph that are still in use)
-                self._inputs = torch.compile(_own_code(self._step_inputs), dynamic=False, options=options)
-                self._network = torch.compile(_own_code(s.model.forward), dynamic=False, options=options)
+                self._inputs = torch.compile(own_code(self._step_inputs), dynamic=False, options=options)
+                self._network = torch.compile(own_code(s.model.forward), dynamic=False, options=options)
             self.compiled = True
 
     # ---- one step ---------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torch_ampn._own_code import own_code
 from torch_ampn.data.mesh import MultiComponentMesh, rectangle_mesh
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
@@ -283,7 +284,9 @@ class LaminateModel:
             blocked = x_new < lower
             return torch.maximum(x_new, lower), torch.where(blocked, torch.zeros_like(v), v)
 
-        return torch.compile(step, dynamic=False) if compile else step
+        # a code object per model: each part of a family (its own mesh) compiles its own step,
+        # rather than the 9th part of a process running eagerly (see torch_ampn._own_code)
+        return torch.compile(own_code(step), dynamic=False) if compile else step
 
 
 def _tool_motion(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int) -> tuple[Tensor, Tensor]:
