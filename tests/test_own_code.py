@@ -39,6 +39,22 @@ def test_own_code_copies_functions_closures_and_methods():
         own_code(torch.sin)
 
 
+def test_keyed_copies_are_shared_per_key(monkeypatch):
+    import torch_ampn._own_code as module
+
+    monkeypatch.setattr(module, "_KEYED", type(module._KEYED)())
+    monkeypatch.setattr(module, "KEYED_COPIES", 2)
+    a, b = own_code(_scaled, key="a"), own_code(_scaled, key="a")
+    assert a is not b and a.__code__ is b.__code__ is not _scaled.__code__  # same key: same code
+    other = own_code(_scaled, key="b")
+    assert other.__code__ is not a.__code__ and other(1.0) == 2.0
+    fresh = own_code(_scaled).__code__
+    assert fresh is not a.__code__ and fresh is not other.__code__  # no key: always new
+    own_code(_scaled, key="c")  # a third key pushes out the least recently used one ("a")
+    assert own_code(_scaled, key="b").__code__ is other.__code__
+    assert own_code(_scaled, key="a").__code__ is not a.__code__
+
+
 def test_compiled_copies_keep_a_cache_each(monkeypatch):
     import torch._dynamo
 

@@ -177,7 +177,11 @@ def test_every_part_of_a_family_runs_its_own_compiled_step(monkeypatch):
     family = PartFamily(num_plies=(2, 3))
     parts = [sample_part(family, seed) for seed in (0, 1)]
     configs = [part_config(TINY, part) for part in parts]
+    graphs = torch._dynamo.utils.counters["stats"]
+    before = graphs["unique_graphs"]
     first, second = (simulate_batch(c, [5], compile=True)[0] for c in configs)
     assert first.num_nodes != second.num_nodes  # other meshes: other compiled steps
+    assert graphs["unique_graphs"] - before == 2
     again = simulate_batch(configs[0], [5], compile=True)[0]  # after another part: the same bits
     assert torch.equal(again.pos, first.pos)
+    assert graphs["unique_graphs"] - before == 2  # the same mesh again: its compiled step, reused

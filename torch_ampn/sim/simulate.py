@@ -284,9 +284,10 @@ class LaminateModel:
             blocked = x_new < lower
             return torch.maximum(x_new, lower), torch.where(blocked, torch.zeros_like(v), v)
 
-        # a code object per model: each part of a family (its own mesh) compiles its own step,
-        # rather than the 9th part of a process running eagerly (see torch_ampn._own_code)
-        return torch.compile(own_code(step), dynamic=False) if compile else step
+        # a code object per mesh: each part of a family compiles its own step, rather than the 9th
+        # part of a process running eagerly; calls for the same mesh reuse it (torch_ampn._own_code)
+        mesh = (tuple(self.x0.shape), str(self.x0.device), self.x0.dtype)
+        return torch.compile(own_code(step, key=mesh), dynamic=False) if compile else step
 
 
 def _tool_motion(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int) -> tuple[Tensor, Tensor]:
