@@ -10,7 +10,9 @@ network, seed and number of training steps (``--steps``, not a time limit):
              part: ``torch_ampn.sim.PartFamily``'s ranges), tested on parts the training split
              never saw: inside the ranges (``inside``) and outside them, one dataset per
              ``--extrapolation NAME=JSON`` (default: ``deeper``, domes 55-65 mm deep where
-             training has 40-55; ``angle30``, plies at +-30 deg where training has 0/45/90/-45)
+             training has 40-55; ``angle30``, plies at +-30 deg where training has 0/45/90/-45);
+             and on ``--num-seen`` of its own training trajectories (``seen``: parts and
+             settings it was trained on), which tells underfitting from a generalisation gap
 
 The datasets are made by the embedded simulator when missing. Each cell writes
 ``<results>/<cell>_seed<k>.json`` atomically when it is complete; a rerun skips finished cells
@@ -29,6 +31,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -54,7 +57,10 @@ EXTRAPOLATIONS = {
 SET_LABELS = {
     "single": "single-part model, its own part (unseen settings)",
     "inside": "family model, unseen parts inside the ranges",
+    "seen": "family model, its own training parts (seen in training)",
 }
+#: Test-set names that an ``--extrapolation`` may not take.
+RESERVED_SETS = ("single", "inside", "seen")
 
 
 def _set_label(name: str, family: dict | None = None) -> str:
@@ -89,6 +95,8 @@ def make_datasets(args: argparse.Namespace, single: dict, family: dict) -> None:
     )
     counts = dict(num_train=args.num_train, num_val=args.num_val, num_test=args.num_test)
     prepare(data, data_dir=str(args.family_data), **counts)
+    if args.num_seen > 0:
+        make_seen_dataset(args.family_data, _seen_dir(args), args.num_seen)
     for name, changes in args.extrapolation.items():
         print(f"extrapolation data {name}: {args.num_extrapolation} test parts, {changes}", flush=True)
         prepare(
@@ -101,8 +109,55 @@ def make_datasets(args: argparse.Namespace, single: dict, family: dict) -> None:
         )
 
 
+def make_seen_dataset(family_data: Path, seen_data: Path, count: int) -> list[Path]:
+    """A dataset folder whose ``test`` split is copies of the first ``count`` training trajectories.
+
+    Testing the family model on it gives its error on parts (and process settings) it was
+    trained on. Files are copied under a temporary name and renamed, so a stopped run leaves
+    no half-written trajectory; existing copies are kept.
+
+    Returns:
+        The test files of ``seen_data``.
+    """
+    from torch_ampn.data.dataset import split_files
+
+    train = split_files(family_data, "train")[:count]
+    if len(train) < count:
+        raise ValueError(f"{family_data}: --num-seen {count} but only {len(train)} training trajectories")
+    (seen_data / "test").mkdir(parents=True, exist_ok=True)
+    spec = family_data / "dataset.json"
+    if spec.exists():
+        _atomic_write(seen_data / "dataset.json", lambda p: shutil.copyfile(spec, p))
+    out = []
+    for src in train:
+        dst = seen_data / "test" / src.name
+        if not dst.exists():
+            _atomic_write(dst, lambda p, src=src: shutil.copyfile(src, p))
+        out.append(dst)
+    return out
+
+
 def _extrapolation_dir(args: argparse.Namespace, name: str) -> Path:
     return args.family_data.with_name(f"{args.family_data.name}_{name}")
+
+
+def _seen_dir(args: argparse.Namespace) -> Path:
+    return _extrapolation_dir(args, "seen")
+
+
+def _test_on(cell_dir: Path, data_dir: Path, count: int, out: Path) -> None:
+    """``torch-ampn test`` of a cell's best checkpoint on the ``count`` test trajectories of ``data_dir``."""
+    _cli(
+        "test",
+        cell_dir / "config.yaml",
+        cell_dir / "log.txt",
+        "--ckpt_path", str(cell_dir / "checkpoints" / "best.ckpt"),
+        "--data.data_dir", str(data_dir),
+        "--data.num_train", "0", "--data.num_val", "0",
+        "--data.num_test", str(count),
+        "--model.check_mesh", "false",
+        "--model.output_dir", str(out),
+    )  # fmt: skip
 
 
 # ---- cells ----------------------------------------------------------------------------------------
@@ -142,19 +197,12 @@ def run_cell(name: str, args: argparse.Namespace, base: dict) -> dict[str, Any]:
     fit_seconds = fit_and_test(config, cell_dir)
     sets = {"single" if name == "single" else "inside": _test_set(cell_dir / "test")}
     if name == "family":
+        if args.num_seen > 0:
+            _test_on(cell_dir, _seen_dir(args), args.num_seen, cell_dir / "test_seen")
+            sets["seen"] = _test_set(cell_dir / "test_seen")
         for set_name in args.extrapolation:
             out = cell_dir / f"test_{set_name}"
-            _cli(
-                "test",
-                cell_dir / "config.yaml",
-                cell_dir / "log.txt",
-                "--ckpt_path", str(cell_dir / "checkpoints" / "best.ckpt"),
-                "--data.data_dir", str(_extrapolation_dir(args, set_name)),
-                "--data.num_train", "0", "--data.num_val", "0",
-                "--data.num_test", str(args.num_extrapolation),
-                "--model.check_mesh", "false",
-                "--model.output_dir", str(out),
-            )  # fmt: skip
+            _test_on(cell_dir, _extrapolation_dir(args, set_name), args.num_extrapolation, out)
             sets[set_name] = {**_test_set(out), "family_changes": args.extrapolation[set_name]}
     result = {
         "cell": name,
@@ -226,9 +274,12 @@ def markdown(rows: list[dict[str, Any]], cells: dict[str, dict]) -> str:
 
 
 def best_and_worst(family: dict) -> list[tuple[str, dict]]:
-    """The best and the worst test part inside the ranges and outside them (by RMSE / best baseline)."""
+    """The best and the worst test part inside the ranges and outside them (by RMSE / best baseline).
+
+    Training parts (the ``seen`` set) are in neither group.
+    """
     picked = []
-    for group in (["inside"], [s for s in family["sets"] if s != "inside"]):
+    for group in (["inside"], [s for s in family["sets"] if s not in RESERVED_SETS]):
         parts = [(s, t) for s in group if s in family["sets"] for t in family["sets"][s]["trajectories"]]
         if parts:
             score = lambda st: st[1]["model"] / st[1]["best_baseline"]  # noqa: E731
@@ -318,6 +369,10 @@ def _extrapolation(text: str) -> tuple[str, dict]:
         raise argparse.ArgumentTypeError(f"--extrapolation {text}: not NAME=JSON ({err})") from err
     if not name or not isinstance(changes, dict):
         raise argparse.ArgumentTypeError(f"--extrapolation {text}: not NAME=JSON with a mapping")
+    if name in RESERVED_SETS:
+        raise argparse.ArgumentTypeError(
+            f"--extrapolation {text}: the name {name!r} is taken (reserved: {', '.join(RESERVED_SETS)})"
+        )
     return name, changes
 
 
@@ -340,6 +395,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="a test set outside the ranges: family settings that change (default: deeper, angle30)",
     )  # fmt: skip
     add("--num-extrapolation", type=int, default=4, help="test parts per extrapolation set")
+    add(
+        "--num-seen", type=int, default=8,
+        help="training trajectories the family model is also tested on (0: none)",
+    )  # fmt: skip
     add("--device", choices=["cpu", "cuda"], default="cpu")
     add("--results", type=Path, default=ROOT / "benchmarks/results/family")
     add("--workdir", type=Path, default=ROOT / "outputs/family_bench")

@@ -52,6 +52,7 @@ def setup(tmp_path_factory, small_sim):
         "--single-data", str(root / "single"), "--family-data", str(root / "family"),
         "--num-train", "3", "--num-val", "1", "--num-test", "2",
         "--extrapolation", 'deep={"dome_depth": [55.0, 60.0]}', "--num-extrapolation", "2",
+        "--num-seen", "2",
         "--steps", "3", "--results", str(root / "results"), "--workdir", str(root / "work"),
     ]  # fmt: skip
     return root, args
@@ -72,7 +73,7 @@ def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys
     assert (
         single["steps"] == family["steps"] == 3 and single["seed"] == family["seed"] == 0
     )  # the same budget
-    assert list(single["sets"]) == ["single"] and list(family["sets"]) == ["inside", "deep"]
+    assert list(single["sets"]) == ["single"] and list(family["sets"]) == ["inside", "seen", "deep"]
     assert family["num_train"] == 3 and family["sets"]["deep"]["family_changes"] == {
         "dome_depth": [55.0, 60.0]
     }
@@ -80,15 +81,22 @@ def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys
     folders = {
         "single": root / "work" / "single_seed0" / "test",
         "inside": root / "work" / "family_seed0" / "test",
+        "seen": root / "work" / "family_seed0" / "test_seen",
         "deep": root / "work" / "family_seed0" / "test_deep",
     }
     rows = {name: _test_rows(folder) for name, folder in folders.items()}
     assert len(rows["single"]) == 1 and len(rows["inside"]) == 2 and len(rows["deep"]) == 2
+    # the seen set is the first two training trajectories, byte for byte
+    train = sorted((root / "family" / "train").glob("*.pt"))[:2]
+    assert [r["trajectory"] for r in rows["seen"]] == [f.stem for f in train]
+    for f in train:
+        assert (root / "family_seen" / "test" / f.name).read_bytes() == f.read_bytes()
+    assert not list((root / "family_seen").rglob("*.tmp"))
     depths = [float(r["part"].rsplit(", ", 1)[1].removesuffix(" mm")) for r in rows["deep"]]
     assert all(55 <= d <= 60 for d in depths)  # the extrapolation set is the deeper domes
     table = json.loads((results / "table.json").read_text())
     by_set = {r["set"]: r for r in table["rows"]}
-    assert list(by_set) == ["single", "inside", "deep"]
+    assert list(by_set) == ["single", "inside", "seen", "deep"]
     for name, set_rows in rows.items():
         mean = sum(float(r["model"]) for r in set_rows) / len(set_rows)
         summary = json.loads((folders[name] / "test_summary.json").read_text())
@@ -119,6 +127,7 @@ def test_best_and_worst_parts_by_error_relative_to_the_baseline():
     family = {
         "sets": {
             "inside": {"trajectories": [part("a", 1.0, 2.0), part("b", 1.0, 5.0), part("c", 2.0, 2.5)]},
+            "seen": {"trajectories": [part("s", 0.1, 9.0), part("t", 9.0, 1.0)]},  # in neither group
             "deep": {"trajectories": [part("d", 3.0, 4.0)]},
             "angle": {"trajectories": [part("e", 1.0, 4.0), part("f", 2.0, 8.0)]},
         }
@@ -133,3 +142,6 @@ def test_a_malformed_extrapolation_is_refused_in_one_line(capsys):
     with pytest.raises(SystemExit):
         bench.parse_args(["--extrapolation", "deeper"])
     assert "--extrapolation deeper: not NAME=JSON with a mapping" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--extrapolation", 'seen={"dome_depth": [55, 60]}'])
+    assert "the name 'seen' is taken" in capsys.readouterr().err
