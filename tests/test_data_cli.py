@@ -129,3 +129,38 @@ def test_generate_refuses_a_device_it_cannot_use_in_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("torch-ampn-data: error: --device") and "\n" not in err, err
     assert not (tmp_path / "ds").exists()  # refused before anything was written
+
+
+def test_generate_in_processes_writes_the_same_files_as_in_process(tmp_path):
+    options = dict(batch=1, compile=False, progress=False, config=TINY)
+    alone = generate_dataset(tmp_path / "alone", 2, 1, 0, workers=1, **options)
+    pooled = generate_dataset(tmp_path / "pooled", 2, 1, 0, workers=2, **options)
+    assert [p.relative_to(tmp_path / "pooled") for p in pooled] == [
+        p.relative_to(tmp_path / "alone") for p in alone
+    ]
+    for a, b in zip(alone, pooled, strict=True):
+        ta, tb = Trajectory.load(a).to_dict(), Trajectory.load(b).to_dict()
+        for key, value in ta.items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, tb[key]), (a.name, key)
+
+
+def test_generate_from_a_script_without_main_guard_fails_in_one_line_instead_of_hanging(tmp_path):
+    import subprocess
+    import sys
+
+    script = tmp_path / "gen.py"
+    script.write_text(
+        "from pathlib import Path\n"
+        "from torch_ampn.sim import StampFormingConfig, generate_dataset\n"
+        "cfg = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)\n"
+        "options = dict(workers=2, batch=1, compile=False, progress=False, config=cfg)\n"
+        "generate_dataset(Path('ds'), 2, 0, 0, **options)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode != 0
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: generate_dataset: a worker process died")
+    assert 'if __name__ == "__main__":' in last

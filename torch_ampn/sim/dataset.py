@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import torch
@@ -59,6 +61,26 @@ def _simulate_chunk(args: tuple) -> list[str]:
             traj.save(path)
             out.append(str(path))
     return out
+
+
+def _run_in_processes(jobs: list[tuple], workers: int, bar) -> None:
+    """Simulate ``jobs`` in ``workers`` spawned processes; a worker that dies is an error, not a hang.
+
+    Spawned workers re-import the caller's ``__main__``: a script that calls
+    :func:`generate_dataset` at top level (no ``if __name__ == "__main__":``) makes every worker
+    start the generation again, which multiprocessing refuses, so the worker dies.
+    """
+    try:
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+            for future in as_completed([pool.submit(_simulate_chunk, job) for job in jobs]):
+                done = future.result()
+                bar and bar.update(len(done))
+    except BrokenProcessPool as err:
+        raise RuntimeError(
+            "generate_dataset: a worker process died (killed, out of memory, or the calling script "
+            "has no `if __name__ == \"__main__\":` guard around the generation; spawned workers "
+            "re-import it); the files written so far are kept, rerun to complete them, or pass workers=1"
+        ) from err
 
 
 def generate_dataset(
@@ -110,6 +132,8 @@ def generate_dataset(
     Raises:
         ValueError: For an unknown ``resolution``, or a folder whose ``dataset.json`` holds
             other simulator settings.
+        RuntimeError: When a worker process dies (see ``workers``: a script calling this
+            with ``workers > 1`` needs an ``if __name__ == "__main__":`` guard).
     """
     if resolution not in ("coarse", "paper"):
         raise ValueError(f"resolution must be 'coarse' or 'paper', got {resolution!r}")
@@ -168,9 +192,7 @@ def generate_dataset(
         for done in results:
             bar and bar.update(len(done))
     elif jobs:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for done in pool.imap_unordered(_simulate_chunk, jobs):
-                bar and bar.update(len(done))
+        _run_in_processes(jobs, workers, bar)
     if bar is not None:
         bar.close()
     return [trajectory_path(out, s, seed) for s, seed in wanted]
