@@ -23,6 +23,7 @@ test parts inside and outside the ranges (final shape, predicted vs true).
 
     python benchmarks/family.py                                  # data, both fits, tests, report
     python benchmarks/family.py --steps 6000 --num-train 48
+    python benchmarks/family.py --cells single                  # one cell (two runs side by side)
     python benchmarks/family.py --report
 """
 
@@ -403,6 +404,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add("--results", type=Path, default=ROOT / "benchmarks/results/family")
     add("--workdir", type=Path, default=ROOT / "outputs/family_bench")
     add("--set", nargs=2, action="append", metavar=("KEY", "VALUE"), help="change both configs")
+    add(
+        "--cells", nargs="+", choices=["single", "family"], default=["single", "family"],
+        help="fit and test only these cells (the report needs both)",
+    )  # fmt: skip
     add("--report", action="store_true", help="only build the table and the figure")
     add("--no-figures", action="store_true")
     add("--progress", action="store_true", help="show the fits' progress bars")
@@ -427,15 +432,20 @@ def main(argv: list[str] | None = None) -> int:
         report(args)
         return 0
     make_datasets(args, configs["single"], configs["family"])
-    for i, name in enumerate(("single", "family"), 1):
+    names = [name for name in ("single", "family") if name in args.cells]
+    for i, name in enumerate(names, 1):
+        tag = f"[{i}/{len(names)}] {name}"
         if (args.results / f"{name}_seed{args.seed}.json").exists():
-            print(f"[{i}/2] {name}: done before, skipped", flush=True)
+            print(f"{tag}: done before, skipped", flush=True)
             continue
-        print(f"[{i}/2] {name}: fit ({args.steps} steps), test ...", flush=True)
+        print(f"{tag}: fit ({args.steps} steps), test ...", flush=True)
         cell = run_cell(name, args, configs[name])
         summary = ", ".join(f"{s} {v['rmse']:.3f} mm" for s, v in cell["sets"].items())
-        print(f"[{i}/2] {name}: {summary}; fit {cell['fit_seconds']:.0f} s", flush=True)
-    report(args)
+        print(f"{tag}: {summary}; fit {cell['fit_seconds']:.0f} s", flush=True)
+    if all((args.results / f"{name}_seed{args.seed}.json").exists() for name in ("single", "family")):
+        report(args)
+    else:
+        print("report: waits for both cells (run the other with --cells, then --report)", flush=True)
     return 0
 
 

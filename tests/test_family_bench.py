@@ -1,4 +1,4 @@
-"""benchmarks/family.py end to end on a tiny budget: both cells, the table, resuming."""
+"""benchmarks/family.py end to end on a tiny budget: both cells, one at a time, the table, resuming."""
 
 import csv
 import importlib.util
@@ -66,8 +66,13 @@ def _test_rows(folder: Path) -> list[dict]:
 def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys):
     root, args = setup
     bench = _load_family_bench()
-    assert bench.main(args) == 0
     results = root / "results"
+    # one cell alone (two runs side by side): no report until both are there
+    assert bench.main([*args, "--cells", "family"]) == 0
+    assert (results / "family_seed0.json").exists() and not (results / "single_seed0.json").exists()
+    assert not (results / "table.json").exists() and "report: waits" in capsys.readouterr().out
+    assert bench.main(args) == 0
+    assert "family: done before, skipped" in capsys.readouterr().out
     single = json.loads((results / "single_seed0.json").read_text())
     family = json.loads((results / "family_seed0.json").read_text())
     assert (
