@@ -14,6 +14,7 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -21,6 +22,9 @@ from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.family import PartFamily, part_config, sample_part
 from torch_ampn.sim.simulate import simulate_batch
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 SPLIT_SEED_OFFSET = {"train": 0, "val": 100_000, "test": 200_000}
 
@@ -63,7 +67,7 @@ def _simulate_chunk(args: tuple) -> list[str]:
     return out
 
 
-def _run_in_processes(jobs: list[tuple], workers: int, bar) -> None:
+def _run_in_processes(jobs: list[tuple], workers: int, bar: tqdm | None) -> None:
     """Simulate ``jobs`` in ``workers`` spawned processes; a worker that dies is an error, not a hang.
 
     Spawned workers re-import the caller's ``__main__``: a script that calls
@@ -132,8 +136,8 @@ def generate_dataset(
     Raises:
         ValueError: For an unknown ``resolution``, or a folder whose ``dataset.json`` holds
             other simulator settings.
-        RuntimeError: When a worker process dies (see ``workers``: a script calling this
-            with ``workers > 1`` needs an ``if __name__ == "__main__":`` guard).
+        RuntimeError: When a worker process dies (a script that calls this with more than
+            one worker needs an ``if __name__ == "__main__":`` guard).
     """
     if resolution not in ("coarse", "paper"):
         raise ValueError(f"resolution must be 'coarse' or 'paper', got {resolution!r}")
