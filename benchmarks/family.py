@@ -23,7 +23,7 @@ test parts inside and outside the ranges (final shape, predicted vs true).
 
     python benchmarks/family.py                                  # data, both fits, tests, report
     python benchmarks/family.py --steps 6000 --num-train 48
-    python benchmarks/family.py --cells single                  # one cell (two runs side by side)
+    python benchmarks/family.py --cells single                  # one cell; the other later
     python benchmarks/family.py --report
 """
 

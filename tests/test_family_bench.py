@@ -67,7 +67,7 @@ def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys
     root, args = setup
     bench = _load_family_bench()
     results = root / "results"
-    # one cell alone (two runs side by side): no report until both are there
+    # one cell alone: no report until both are there
     assert bench.main([*args, "--cells", "family"]) == 0
     assert (results / "family_seed0.json").exists() and not (results / "single_seed0.json").exists()
     assert not (results / "table.json").exists() and "report: waits" in capsys.readouterr().out
