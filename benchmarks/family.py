@@ -146,6 +146,11 @@ def _seen_dir(args: argparse.Namespace) -> Path:
     return _extrapolation_dir(args, "seen")
 
 
+def _cell_result(args: argparse.Namespace, name: str) -> Path:
+    """The JSON a cell's fit and tests end in; its presence means the cell is done."""
+    return args.results / f"{name}_seed{args.seed}.json"
+
+
 def _test_on(cell_dir: Path, data_dir: Path, count: int, out: Path) -> None:
     """``torch-ampn test`` of a cell's best checkpoint on the ``count`` test trajectories of ``data_dir``."""
     _cli(
@@ -219,9 +224,7 @@ def run_cell(name: str, args: argparse.Namespace, base: dict) -> dict[str, Any]:
         "machine": _machine(args.device),
     }
     args.results.mkdir(parents=True, exist_ok=True)
-    _atomic_write(
-        args.results / f"{name}_seed{args.seed}.json", lambda p: p.write_text(json.dumps(result, indent=1))
-    )
+    _atomic_write(_cell_result(args, name), lambda p: p.write_text(json.dumps(result, indent=1)))
     return result
 
 
@@ -337,7 +340,7 @@ def figure(family: dict, args: argparse.Namespace, path: Path) -> Path:
 def report(args: argparse.Namespace) -> dict[str, Any]:
     cells = {}
     for name in ("single", "family"):
-        path = args.results / f"{name}_seed{args.seed}.json"
+        path = _cell_result(args, name)
         if path.exists():
             cells[name] = json.loads(path.read_text())
     rows = table(cells)
@@ -435,14 +438,14 @@ def main(argv: list[str] | None = None) -> int:
     names = [name for name in ("single", "family") if name in args.cells]
     for i, name in enumerate(names, 1):
         tag = f"[{i}/{len(names)}] {name}"
-        if (args.results / f"{name}_seed{args.seed}.json").exists():
+        if _cell_result(args, name).exists():
             print(f"{tag}: done before, skipped", flush=True)
             continue
         print(f"{tag}: fit ({args.steps} steps), test ...", flush=True)
         cell = run_cell(name, args, configs[name])
         summary = ", ".join(f"{s} {v['rmse']:.3f} mm" for s, v in cell["sets"].items())
         print(f"{tag}: {summary}; fit {cell['fit_seconds']:.0f} s", flush=True)
-    if all((args.results / f"{name}_seed{args.seed}.json").exists() for name in ("single", "family")):
+    if all(_cell_result(args, name).exists() for name in ("single", "family")):
         report(args)
     else:
         print("report: waits for both cells (run the other with --cells, then --report)", flush=True)
