@@ -185,3 +185,28 @@ def test_every_part_of_a_family_runs_its_own_compiled_step(monkeypatch):
     again = simulate_batch(configs[0], [5], compile=True)[0]  # after another part: the same bits
     assert torch.equal(again.pos, first.pos)
     assert graphs["unique_graphs"] - before == 2  # the same mesh again: its compiled step, reused
+
+
+def test_parts_with_one_mesh_but_other_tools_compile_their_own_steps(monkeypatch):
+    """Two parts with the same ply count (the same mesh) but other dome geometry: the step reads
+    the geometry as constants, so a shared compiled step would recompile for the second part
+    (and run a process's 9th such part eagerly); each part gets its own, reused for its seeds."""
+    import torch._dynamo
+
+    from torch_ampn.sim import simulate_batch
+
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
+    monkeypatch.setattr(torch._dynamo.config, "fail_on_recompile_limit_hit", True)
+    family = PartFamily(num_plies=(3, 3))
+    parts = [sample_part(family, seed) for seed in (10, 11)]  # seeds no other test compiles
+    assert parts[0]["dome_axes"] != parts[1]["dome_axes"]
+    configs = [part_config(TINY, part) for part in parts]
+    graphs = torch._dynamo.utils.counters["stats"]
+    before = graphs["unique_graphs"]
+    first, second = (simulate_batch(c, [5], compile=True)[0] for c in configs)
+    assert first.num_nodes == second.num_nodes  # one mesh, two tool geometries
+    assert graphs["unique_graphs"] - before == 2
+    again = simulate_batch(configs[0], [6], compile=True)[0]  # another seed of the first part
+    assert graphs["unique_graphs"] - before == 2  # its compiled step, reused
+    assert again.num_nodes == first.num_nodes
+

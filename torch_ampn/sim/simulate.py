@@ -284,10 +284,11 @@ class LaminateModel:
             blocked = x_new < lower
             return torch.maximum(x_new, lower), torch.where(blocked, torch.zeros_like(v), v)
 
-        # a code object per mesh: each part of a family compiles its own step, rather than the 9th
-        # part of a process running eagerly; calls for the same mesh reuse it (torch_ampn._own_code)
-        mesh = (tuple(self.x0.shape), str(self.x0.device), self.x0.dtype)
-        return torch.compile(own_code(step, key=mesh), dynamic=False) if compile else step
+        # a code object per mesh and part: the step reads the tool geometry as constants, so each
+        # part of a family compiles its own step, rather than recompiling a shared one until the
+        # 9th part of a process runs eagerly; calls for the same part reuse it (torch_ampn._own_code)
+        part = (tuple(self.x0.shape), str(self.x0.device), self.x0.dtype, repr(self.cfg))
+        return torch.compile(own_code(step, key=part), dynamic=False) if compile else step
 
 
 def _tool_motion(cfg: StampFormingConfig, mesh: MultiComponentMesh, n: int) -> tuple[Tensor, Tensor]:
