@@ -209,4 +209,3 @@ def test_parts_with_one_mesh_but_other_tools_compile_their_own_steps(monkeypatch
     again = simulate_batch(configs[0], [6], compile=True)[0]  # another seed of the first part
     assert graphs["unique_graphs"] - before == 2  # its compiled step, reused
     assert again.num_nodes == first.num_nodes
-
