@@ -10,6 +10,12 @@ echo "[test] ruff check"
 ruff check .
 echo "[test] pytest"
 export MPLBACKEND=Agg
+# One pytest worker per core (pytest-xdist), each with one thread: torch's OpenMP threads
+# spin-wait, and two workers of two threads each on two cores would slow each other down.
+# --dist loadgroup: the tests of one xdist_group (e.g. those that share the run's one fit, or
+# compile the same graphs) run in one worker, in file order.
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # notebook cells get 15 minutes (nbmake: 5): a loaded 2-core machine can slow them far beyond their ~10 s
 # --durations: the slowest tests, where the suite's time goes
-python -m pytest --nbmake --nbmake-timeout=900 --durations=15 tests examples/notebooks "$@"
+python -m pytest -n "${AMPN_TEST_WORKERS:-auto}" --dist loadgroup \
+    --nbmake --nbmake-timeout=900 --durations=15 tests examples/notebooks "$@"

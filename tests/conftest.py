@@ -29,3 +29,34 @@ def small_runs(small_sim):
     from torch_ampn.sim import simulate_batch
 
     return simulate_batch(small_sim, seeds=[3, 4])
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory):
+    """A copy of the committed tiny dataset (``tests/data/tiny``: 2/1/1 trajectories of ``small_sim``).
+
+    A copy, because reading it writes a hierarchy cache into the folder. Made by
+    ``tests/make_fixtures.py``; ``tests/test_fixtures.py`` checks that it still makes it.
+    """
+    import shutil
+
+    from make_fixtures import TINY_DATA
+
+    copy = tmp_path_factory.mktemp("tiny") / "data"
+    shutil.copytree(TINY_DATA, copy)
+    return copy
+
+
+@pytest.fixture(scope="session")
+def tiny_fit(tmp_path_factory, tiny_data):
+    """The test run's one fit (``make_fixtures.fit_config``: 6 steps): ``(data folder, output folder)``.
+
+    The output folder holds ``ckpt/last.ckpt`` (steps 3 and 6), ``logs/metrics.csv`` and
+    ``reports/``; tests read it and write elsewhere. Tests that use it carry
+    ``@pytest.mark.xdist_group("tiny_fit")``, so that ``pytest -n`` fits once, in one worker.
+    """
+    from make_fixtures import fit_config, make_checkpoint
+
+    folder = tmp_path_factory.mktemp("tiny_fit")
+    make_checkpoint(folder, tiny_data)
+    return tiny_data, fit_config(folder, tiny_data)[1]

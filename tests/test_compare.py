@@ -15,7 +15,7 @@ import yaml
 
 pytest.importorskip("lightning")
 
-from torch_ampn.testing import checkpoint_steps, tiny_cli_config  # noqa: E402
+from helpers import checkpoint_steps, eager_fast_rollout, tiny_cli_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,23 +29,21 @@ def _load_compare():
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory, small_sim):
-    from torch_ampn.sim import generate_dataset
-
+def setup(tmp_path_factory, tiny_data):
     root = tmp_path_factory.mktemp("compare")
-    generate_dataset(root / "data", 2, 1, 1, config=small_sim, workers=1, compile=False, progress=False)
     config = tiny_cli_config(data={"generate": False})
     (root / "tiny.yaml").write_text(yaml.safe_dump(config))
     args = [
-        "--config", str(root / "tiny.yaml"), "--data-dir", str(root / "data"), "--steps", "3",
+        "--config", str(root / "tiny.yaml"), "--data-dir", str(tiny_data), "--steps", "3",
         "--seeds", "0", "--results", str(root / "results"), "--workdir", str(root / "work"),
         "--simulator-mode", "eager",
     ]  # fmt: skip
     return root, args
 
 
-def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys):
+def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypatch):
     root, args = setup
+    eager_fast_rollout(monkeypatch)  # the timings' fast path: the table is checked here, not the compile
     compare = _load_compare()
     assert compare.main([*args, "--variants", "ampn", "robin5"]) == 0
     results = root / "results"

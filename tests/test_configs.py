@@ -13,9 +13,9 @@ import yaml
 
 pytest.importorskip("lightning")
 
+from helpers import checkpoint_steps  # noqa: E402
 from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: E402
 
-from torch_ampn.testing import checkpoint_steps  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
 from torch_ampn.training.cli import main  # noqa: E402
 

@@ -18,7 +18,7 @@ from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E40
 MODEL = dict(
     hidden_channels=8, mlp_channels=8, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
     post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1, warmup_steps=1, statistics_samples=8,
-    touch_radii=[3.0],
+    touch_radii=[3.0], fast_rollout=False,
 )  # fmt: skip
 
 

@@ -11,7 +11,7 @@ import yaml
 
 pytest.importorskip("lightning")
 
-from torch_ampn.testing import tiny_cli_config  # noqa: E402
+from helpers import tiny_cli_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,7 +29,7 @@ def _config(simulator: dict, **model) -> dict:
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory, small_sim):
+def setup(tmp_path_factory, small_sim, tiny_data):
     """Tiny single-part and family configs; their datasets made beforehand without compiling the solver."""
     from torch_ampn.sim import PartFamily, generate_dataset
     from torch_ampn.testing import SMALL_SIMULATOR
@@ -37,7 +37,6 @@ def setup(tmp_path_factory, small_sim):
     root = tmp_path_factory.mktemp("family_bench")
     family = PartFamily(num_plies=(2, 3))
     options = dict(config=small_sim, workers=1, compile=False, progress=False)
-    generate_dataset(root / "single", 2, 1, 1, **options)
     generate_dataset(root / "family", 3, 1, 2, family=family, **options)
     deeper = PartFamily.from_dict({**family.to_dict(), "dome_depth": [55.0, 60.0]})
     generate_dataset(root / "family_deep", 0, 0, 2, family=deeper, **options)
@@ -49,7 +48,7 @@ def setup(tmp_path_factory, small_sim):
     (root / "family.yaml").write_text(yaml.safe_dump(fam))
     args = [
         "--single-config", str(root / "single.yaml"), "--family-config", str(root / "family.yaml"),
-        "--single-data", str(root / "single"), "--family-data", str(root / "family"),
+        "--single-data", str(tiny_data), "--family-data", str(root / "family"),
         "--num-train", "3", "--num-val", "1", "--num-test", "2",
         "--extrapolation", 'deep={"dome_depth": [55.0, 60.0]}', "--num-extrapolation", "2",
         "--num-seen", "2",

@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -14,7 +15,9 @@ import yaml
 
 pytest.importorskip("lightning")
 
+import helpers  # noqa: E402
 import lightning as L  # noqa: E402
+from make_fixtures import SMALL_MODEL, TINY_CKPT, fit_config  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
@@ -28,23 +31,11 @@ from torch_ampn.training import (  # noqa: E402
 )
 from torch_ampn.training.cli import main  # noqa: E402
 
-SMALL_MODEL = dict(
-    hidden_channels=16,
-    mlp_channels=16,
-    num_levels=2,
-    pre_layers=1,
-    down_layers=1,
-    solve_layers=1,
-    post_layers=1,
-    up_layers=1,
-)
-
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory, small_sim):
-    root = tmp_path_factory.mktemp("dataset")
-    generate_dataset(root, 2, 1, 1, config=small_sim, workers=1, compile=False, progress=False)
-    return root
+def data_dir(tiny_data):
+    """The committed tiny dataset (2/1/1 trajectories of ``small_sim``), a copy of the run's."""
+    return tiny_data
 
 
 def _datamodule(data_dir, **kwargs):
@@ -369,46 +360,8 @@ def test_datamodule_generates_an_empty_folder(tmp_path):
 
 # ---- the CLI -----------------------------------------------------------------------------------
 def _config(tmp_path, data_dir):
-    out = tmp_path / "out"
-    config = {
-        "seed_everything": 0,
-        "trainer": {
-            "accelerator": "cpu",
-            "devices": 1,
-            "max_steps": 6,
-            "val_check_interval": 3,
-            "check_val_every_n_epoch": None,
-            "log_every_n_steps": 1,
-            "enable_model_summary": False,
-            "enable_progress_bar": False,
-            "logger": {
-                "class_path": "lightning.pytorch.loggers.CSVLogger",
-                "init_args": {"save_dir": str(out), "name": "logs", "version": ""},
-            },
-            "callbacks": [
-                {
-                    "class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                    "init_args": {"dirpath": str(out / "ckpt"), "save_last": True},
-                },
-                {
-                    "class_path": "lightning.pytorch.callbacks.LearningRateMonitor",
-                    "init_args": {"logging_interval": "step"},
-                },
-            ],
-        },
-        "model": {
-            **SMALL_MODEL,
-            "lr": 1e-3,
-            "final_lr": 1e-4,
-            "warmup_steps": 2,
-            "statistics_samples": 8,
-            "output_dir": str(out / "reports"),
-        },
-        "data": {"data_dir": str(data_dir), "generate": False, "min_coarse_nodes": 4},
-    }
-    path = tmp_path / "tiny.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path, out
+    """The tiny fit's config (``tests/make_fixtures.py``) in ``tmp_path``: ``(path, output folder)``."""
+    return fit_config(tmp_path, data_dir)
 
 
 def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
@@ -421,9 +374,7 @@ def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
 
 def test_test_and_predict_refuse_another_mesh_unless_told(data_dir, tmp_path, small_sim):
     """A checkpoint records its training meshes; test/predict on another mesh stop with the file's name."""
-    config, out = _config(tmp_path, data_dir)
-    main(["fit", "--config", str(config), "--trainer.max_steps", "2"])
-    ckpt = out / "ckpt" / "last.ckpt"
+    out, ckpt = tmp_path / "out", TINY_CKPT
     meshes = torch.load(ckpt, weights_only=True)["training_meshes"]
     assert list(meshes.values()) == [Trajectory.load(next((data_dir / "train").glob("*.pt"))).num_nodes]
 
@@ -465,9 +416,9 @@ def test_a_model_of_a_family_of_parts_fits_and_tests_per_part(tmp_path, small_si
         main(["fit", "--config", str(config), "--model.num_components", "4"])
 
 
-def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
-    config, out = _config(tmp_path, data_dir)
-    main(["fit", "--config", str(config)])
+@pytest.mark.xdist_group("tiny_fit")
+def test_cli_fit_test_predict_end_to_end(tiny_fit, tmp_path, capsys):
+    data_dir, out = tiny_fit  # the run's one fit: `torch-ampn fit --config` of make_fixtures.fit_config
     ckpt = out / "ckpt" / "last.ckpt"
     assert ckpt.is_file()
 
@@ -522,7 +473,7 @@ def test_cli_fit_test_predict_end_to_end(data_dir, tmp_path, capsys):
     assert info["gripper_force"] == [90.0, 10.0]
 
     # settings given with --ckpt_path win where they do not change the network ...
-    elsewhere = out / "elsewhere"
+    elsewhere = tmp_path / "elsewhere"
     extra = ["--data.predict_file", str(settings), "--model.output_dir", str(elsewhere)]
     main(_from_checkpoint("predict", ckpt, data_dir, out, *extra, "--model.export_xdmf", "false"))
     assert (elsewhere / "predict" / "wide.png").is_file()
@@ -648,9 +599,13 @@ def test_ema_weight_averaging_keeps_statistics_and_averages_by_hand(data_dir):
 
 
 def _fit_three_steps_compiled(data_dir, **kwargs):
+    """3 steps of a flat network (``num_levels=1``): the compile of the training step (forward and
+    backward, dynamic shapes) is what the compile tests here are about; the compiled V-cycle's
+    layers are checked against eager in tests/test_nn_compile.py, at half this compile time."""
     L.seed_everything(0)
-    module = AMPNLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
-    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, batch_size=2)
+    model = {**SMALL_MODEL, "num_levels": 1}
+    module = AMPNLightningModule(**model, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
+    dm = AMPNDataModule(str(data_dir), generate=False, max_levels=1, min_coarse_nodes=4, batch_size=2)
     _quiet_trainer(max_steps=3).fit(module, datamodule=dm)
     return module
 
@@ -801,23 +756,21 @@ def test_an_output_folder_that_cannot_be_written_stops_fit_before_training(data_
     assert trainer.global_step == 0 and not module.surrogate.statistics_frozen  # before any work
 
 
-def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(data_dir, tmp_path):
+@pytest.mark.xdist_group("tiny_fit")
+def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(tiny_fit, tmp_path):
     """``kill -9`` during ``fit``, then ``--ckpt_path last.ckpt``: the same weights as an uninterrupted fit.
 
     Bit for bit on the CPU: the checkpoint holds the random generators' states and the
     training loader's position (its epoch order depends on the seed and the epoch only), so
     the resumed run trains on the same batches with the same noise from the step it stopped at.
     """
-    for name in ("whole", "killed"):
-        (tmp_path / name).mkdir()
-    whole, _ = _config(tmp_path / "whole", data_dir)
-    main(["fit", "--config", str(whole)])
+    data_dir, whole = tiny_fit  # the uninterrupted fit
     config, out = _config(tmp_path / "killed", data_dir)
     last = out / "ckpt" / "last.ckpt"
     killing = yaml.safe_load(config.read_text())
     killing["trainer"]["callbacks"].append(
         {
-            "class_path": "torch_ampn.training.faults.SigkillAtStep",
+            "class_path": "helpers.SigkillAtStep",
             "init_args": {"step": 3, "expect": str(last)},  # last.ckpt of the validation at step 3
         }
     )
@@ -829,14 +782,14 @@ def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(data_dir, tmp_path):
     script += "from torch_ampn.training.cli import main; main(sys.argv[1:])"
     done = subprocess.run(
         [sys.executable, "-c", script, "fit", "--config", str(killing_path)],
-        capture_output=True, text=True, cwd=tmp_path,
+        capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": helpers.PYTHONPATH},
     )  # fmt: skip
     assert done.returncode == -signal.SIGKILL, done.stderr[-2000:]
     assert torch.load(last, weights_only=True)["global_step"] == 3
     assert not (out / "ckpt" / "epoch=0-step=6.ckpt").exists()  # it did not get further
 
     main(["fit", "--config", str(config), "--ckpt_path", str(last)])
-    a = torch.load(tmp_path / "whole" / "out" / "ckpt" / "last.ckpt", weights_only=True)
+    a = torch.load(whole / "ckpt" / "last.ckpt", weights_only=True)
     b = torch.load(last, weights_only=True)
     assert a["global_step"] == b["global_step"] == 6
     assert a["state_dict"].keys() == b["state_dict"].keys()
