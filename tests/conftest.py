@@ -48,6 +48,18 @@ def tiny_data(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_family(tmp_path_factory):
+    """A copy of the committed tiny family dataset (``tests/data/tiny_family``: parts of 2 and 3 plies)."""
+    import shutil
+
+    from make_fixtures import TINY_FAMILY
+
+    copy = tmp_path_factory.mktemp("tiny_family") / "data"
+    shutil.copytree(TINY_FAMILY, copy)
+    return copy
+
+
+@pytest.fixture(scope="session")
 def tiny_fit(tmp_path_factory, tiny_data):
     """The test run's one fit (``make_fixtures.fit_config``: 6 steps): ``(data folder, output folder)``.
 
@@ -60,3 +72,10 @@ def tiny_fit(tmp_path_factory, tiny_data):
     folder = tmp_path_factory.mktemp("tiny_fit")
     make_checkpoint(folder, tiny_data)
     return tiny_data, fit_config(folder, tiny_data)[1]
+
+
+def pytest_collection_modifyitems(config, items):
+    """The notebooks (``--nbmake``) count as slow: each simulates, trains and rolls out."""
+    for item in items:
+        if item.nodeid.endswith(".ipynb"):
+            item.add_marker(pytest.mark.slow)

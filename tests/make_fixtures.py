@@ -1,11 +1,13 @@
 """Make the committed test fixtures: a tiny simulated dataset and a tiny trained checkpoint.
 
-    python tests/make_fixtures.py            # writes tests/data/tiny/ and tests/data/tiny.ckpt
+    python tests/make_fixtures.py   # writes tests/data/tiny/, tests/data/tiny_family/, tests/data/tiny.ckpt
 
 ``tests/data/tiny/``: 2 training, 1 validation and 1 test trajectory of the small simulator
-setting (``torch_ampn.testing.SMALL_SIMULATOR``, eager solver). ``tests/data/tiny.ckpt``: the
-``last.ckpt`` of a 6-step CLI fit of a d = 16, 2-level model on it (:func:`fit_config`), the
-fit the test run makes once (``tiny_fit`` in ``tests/conftest.py``).
+setting (``torch_ampn.testing.SMALL_SIMULATOR``, eager solver). ``tests/data/tiny_family/``:
+3/1/2 trajectories of a family of parts of that setting with 2 or 3 plies (two meshes).
+``tests/data/tiny.ckpt``: the ``last.ckpt`` of a 6-step CLI fit of a d = 16, 2-level model on
+the tiny dataset (:func:`fit_config`), the fit the test run makes once (``tiny_fit`` in
+``tests/conftest.py``).
 ``tests/test_fixtures.py`` checks that these functions still make what is committed.
 """
 
@@ -20,10 +22,12 @@ from typing import Any
 import yaml
 
 DATA = Path(__file__).parent / "data"
-#: The committed dataset and checkpoint.
-TINY_DATA, TINY_CKPT = DATA / "tiny", DATA / "tiny.ckpt"
-#: Trajectories per split of the tiny dataset.
-SPLITS = (2, 1, 1)
+#: The committed datasets and checkpoint.
+TINY_DATA, TINY_FAMILY, TINY_CKPT = DATA / "tiny", DATA / "tiny_family", DATA / "tiny.ckpt"
+#: Trajectories per split of the tiny dataset and of the tiny family dataset.
+SPLITS, FAMILY_SPLITS = (2, 1, 1), (3, 1, 2)
+#: The tiny family: parts of 2 and 3 plies (two meshes), the other ranges the defaults.
+FAMILY = {"num_plies": [2, 3]}
 
 #: The network of the tiny fit; ``fast_rollout=False``: its validation, test and predict roll out
 #: on the plain path, which needs no compile (the fast path has tests of its own).
@@ -47,6 +51,17 @@ def make_dataset(out: Path) -> None:
 
     config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
     generate_dataset(out, *SPLITS, config=config, workers=1, compile=False, progress=False)
+
+
+def make_family_dataset(out: Path) -> None:
+    """Simulate the tiny family dataset (:data:`FAMILY`, :data:`FAMILY_SPLITS`) into ``out``."""
+    from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset
+    from torch_ampn.testing import SMALL_SIMULATOR
+
+    config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
+    family = PartFamily.from_dict(FAMILY)
+    options = dict(workers=1, compile=False, progress=False)
+    generate_dataset(out, *FAMILY_SPLITS, config=config, family=family, **options)
 
 
 def fit_config(folder: Path, data_dir: Path) -> tuple[Path, Path]:
@@ -108,7 +123,7 @@ def make_checkpoint(folder: Path, data_dir: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Write ``tests/data/tiny/`` and ``tests/data/tiny.ckpt`` anew."""
+    """Write ``tests/data/tiny/``, ``tests/data/tiny_family/`` and ``tests/data/tiny.ckpt`` anew."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -119,7 +134,10 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(TINY_DATA, ignore_errors=True)
         shutil.copytree(data, TINY_DATA)
         shutil.copyfile(ckpt, TINY_CKPT)
-    print(f"wrote {TINY_DATA} and {TINY_CKPT}")
+        make_family_dataset(Path(tmp) / "tiny_family")
+        shutil.rmtree(TINY_FAMILY, ignore_errors=True)
+        shutil.copytree(Path(tmp) / "tiny_family", TINY_FAMILY)
+    print(f"wrote {TINY_DATA}, {TINY_FAMILY} and {TINY_CKPT}")
 
 
 if __name__ == "__main__":

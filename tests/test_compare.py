@@ -41,6 +41,7 @@ def setup(tmp_path_factory, tiny_data):
     return root, args
 
 
+@pytest.mark.slow
 def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypatch):
     root, args = setup
     eager_fast_rollout(monkeypatch)  # the timings' fast path: the table is checked here, not the compile
@@ -101,6 +102,7 @@ def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypat
     assert "| flat MeshGraphNet (1 level) | missing |" in (results / "table.md").read_text()
 
 
+@pytest.mark.slow
 def test_a_killed_cell_leaves_no_result(setup):
     root, args = setup
     cmd = [sys.executable, str(ROOT / "benchmarks" / "compare.py"), *args, "--variants", "flat"]

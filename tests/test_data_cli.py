@@ -80,6 +80,7 @@ def test_convert_and_export_commands(tmp_path, capsys):
     assert "missing.xdmf" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_shards_in_any_order_make_the_files_of_one_job(tmp_path):
     sizes = (5, 1, 2)  # 8 jobs in chunks of 2: shard i of 3 takes chunks i, i + 3
     options = dict(workers=1, batch=2, compile=False, progress=False, config=TINY)
@@ -131,6 +132,7 @@ def test_generate_refuses_a_device_it_cannot_use_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "ds").exists()  # refused before anything was written
 
 
+@pytest.mark.slow
 def test_generate_in_processes_writes_the_same_files_as_in_process(tmp_path):
     options = dict(batch=1, compile=False, progress=False, config=TINY)
     alone = generate_dataset(tmp_path / "alone", 2, 1, 0, workers=1, **options)
@@ -145,6 +147,7 @@ def test_generate_in_processes_writes_the_same_files_as_in_process(tmp_path):
                 assert torch.equal(value, tb[key]), (a.name, key)
 
 
+@pytest.mark.slow
 def test_generate_from_a_script_without_main_guard_fails_in_one_line_instead_of_hanging(tmp_path):
     import subprocess
     import sys

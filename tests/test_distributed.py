@@ -71,6 +71,7 @@ def ddp_run(tmp_path_factory, small_sim):
     return root, out, logged
 
 
+@pytest.mark.slow
 def test_ddp_fit_uses_the_single_process_statistics_and_validates_every_trajectory_once(ddp_run):
     root, out, logged = ddp_run
     module = AMPNLightningModule.load_from_checkpoint(out / "ckpt" / "last.ckpt", map_location="cpu")
@@ -96,6 +97,7 @@ def test_ddp_fit_uses_the_single_process_statistics_and_validates_every_trajecto
     assert logged[-1] == pytest.approx(sum(values) / 3, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_ddp_test_reports_every_trajectory_once_with_one_figure(ddp_run):
     _, out, _ = ddp_run
     with open(out / "reports" / "test_rmse.csv") as f:

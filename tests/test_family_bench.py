@@ -3,6 +3,7 @@
 import csv
 import importlib.util
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import yaml
 pytest.importorskip("lightning")
 
 from helpers import tiny_cli_config  # noqa: E402
+from make_fixtures import TINY_FAMILY  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +39,7 @@ def setup(tmp_path_factory, small_sim, tiny_data):
     root = tmp_path_factory.mktemp("family_bench")
     family = PartFamily(num_plies=(2, 3))
     options = dict(config=small_sim, workers=1, compile=False, progress=False)
-    generate_dataset(root / "family", 3, 1, 2, family=family, **options)
+    shutil.copytree(TINY_FAMILY, root / "family")  # the benchmark writes family_seen/ beside it
     deeper = PartFamily.from_dict({**family.to_dict(), "dome_depth": [55.0, 60.0]})
     generate_dataset(root / "family_deep", 0, 0, 2, family=deeper, **options)
     single = _config(SMALL_SIMULATOR)
@@ -62,6 +64,7 @@ def _test_rows(folder: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys):
     root, args = setup
     bench = _load_family_bench()

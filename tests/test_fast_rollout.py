@@ -191,6 +191,7 @@ def test_fast_rollout_of_a_stack_encoded_model_with_spare_components(long_run, h
 COMPILED = dict(num_levels=2)
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("compiled_fast_rollout")  # the second finds the first's graphs cached
 def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, monkeypatch):
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)  # the default rule (conftest sets 0)
@@ -335,6 +336,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("compiled_fast_rollout")  # the second finds the first's graphs cached
 def test_many_fast_rollouts_each_keep_their_compiled_step(long_run, hierarchy, monkeypatch):
     """Dynamo caches compiled code per code object and stops compiling one after ``recompile_limit``

@@ -7,21 +7,35 @@ import torch
 
 pytest.importorskip("lightning")
 
-from make_fixtures import SPLITS, TINY_CKPT, TINY_DATA, make_dataset  # noqa: E402
+from make_fixtures import (  # noqa: E402
+    FAMILY_SPLITS,
+    SPLITS,
+    TINY_CKPT,
+    TINY_DATA,
+    TINY_FAMILY,
+    make_dataset,
+    make_family_dataset,
+)
 
 from torch_ampn.data import Trajectory  # noqa: E402
 
 
-def test_the_script_still_simulates_the_committed_dataset(tmp_path):
-    make_dataset(tmp_path / "tiny")
-    made = sorted(p.relative_to(tmp_path / "tiny") for p in (tmp_path / "tiny").glob("*/*.pt"))
-    committed = sorted(p.relative_to(TINY_DATA) for p in TINY_DATA.glob("*/*.pt"))
-    assert made == committed and len(made) == sum(SPLITS)
-    assert json.loads((tmp_path / "tiny" / "dataset.json").read_text()) == json.loads(
-        (TINY_DATA / "dataset.json").read_text()
+@pytest.mark.parametrize(
+    "make, committed_dir, splits",
+    [(make_dataset, TINY_DATA, SPLITS), (make_family_dataset, TINY_FAMILY, FAMILY_SPLITS)],
+    ids=["tiny", "tiny_family"],
+)
+def test_the_script_still_simulates_the_committed_dataset(tmp_path, make, committed_dir, splits):
+    folder = tmp_path / "made"
+    make(folder)
+    made = sorted(p.relative_to(folder) for p in folder.glob("*/*.pt"))
+    committed = sorted(p.relative_to(committed_dir) for p in committed_dir.glob("*/*.pt"))
+    assert made == committed and len(made) == sum(splits)
+    assert json.loads((folder / "dataset.json").read_text()) == json.loads(
+        (committed_dir / "dataset.json").read_text()
     )
     for name in made:
-        a, b = Trajectory.load(tmp_path / "tiny" / name), Trajectory.load(TINY_DATA / name)
+        a, b = Trajectory.load(folder / name), Trajectory.load(committed_dir / name)
         assert a.meta == b.meta and a.names == b.names, name
         for field in ("component", "node_type", "gripper_nodes", "gripper_force", "time", "fiber"):
             assert torch.equal(getattr(a, field), getattr(b, field)), (name, field)

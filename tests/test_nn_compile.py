@@ -65,6 +65,7 @@ def test_compiled_intra_level_conv_matches_eager():
         torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_compiled_ampn_matches_eager(toy):
     """One layer per stage of the V-cycle: every kind of layer on every level, a third of the compile.
 

@@ -94,6 +94,7 @@ def test_a_family_dataset_gives_every_trajectory_its_part(tmp_path):
         generate_dataset(out, 2, 0, 1, family=PartFamily(num_plies=(4, 4)), **options)
 
 
+@pytest.mark.slow
 def test_the_data_cli_makes_a_family_dataset_and_refuses_a_bad_family_file(tmp_path, capsys):
     spec = tmp_path / "family.yaml"
     spec.write_text("num_plies: [2, 2]\nshapes: [single_dome]\n")
@@ -164,6 +165,7 @@ def test_a_batch_of_parts_with_other_ply_counts_equals_the_single_predictions():
     torch.testing.assert_close(batched, torch.cat(single), atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_every_part_of_a_family_runs_its_own_compiled_step(monkeypatch):
     """Parts with other meshes in one process each compile their solver step: with one entry per
     code object allowed, a shared step would raise at the second part (by default it would run
@@ -187,6 +189,7 @@ def test_every_part_of_a_family_runs_its_own_compiled_step(monkeypatch):
     assert graphs["unique_graphs"] - before == 2  # the same mesh again: its compiled step, reused
 
 
+@pytest.mark.slow
 def test_parts_with_one_mesh_but_other_tools_compile_their_own_steps(monkeypatch):
     """Two parts with the same ply count (the same mesh) but other dome geometry: the step reads
     the geometry as constants, so a shared compiled step would recompile for the second part

@@ -21,7 +21,7 @@ from make_fixtures import SMALL_MODEL, TINY_CKPT, fit_config  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
-from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset  # noqa: E402
+from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
@@ -392,11 +392,10 @@ def test_test_and_predict_refuse_another_mesh_unless_told(data_dir, tmp_path, sm
     main(_from_checkpoint("test", ckpt, data_dir, out))  # its own mesh: no complaint
 
 
-def test_a_model_of_a_family_of_parts_fits_and_tests_per_part(tmp_path, small_sim, capsys):
+@pytest.mark.slow
+def test_a_model_of_a_family_of_parts_fits_and_tests_per_part(tmp_path, tiny_family, capsys):
     """Mixed parts (2 and 3 plies: two meshes) in training batches, validation and test; a part column."""
-    data = tmp_path / "family"
-    family = PartFamily(num_plies=(2, 3))
-    generate_dataset(data, 3, 1, 2, config=small_sim, family=family, workers=1, compile=False, progress=False)
+    data = tiny_family
     plies = {len(Trajectory.load(f).meta["part"]["ply_angles"]) for f in sorted(data.glob("*/*.pt"))}
     assert plies == {2, 3}  # both stacks are there
     config, out = _config(tmp_path, data)
@@ -610,6 +609,7 @@ def _fit_three_steps_compiled(data_dir, **kwargs):
     return module
 
 
+@pytest.mark.slow
 def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(data_dir):
     torch._dynamo.reset()
     eager = _fit_three_steps_compiled(data_dir)
