@@ -192,7 +192,7 @@ COMPILED = dict(num_levels=2)
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("compiled_fast_rollout")  # the second finds the first's graphs cached
+@pytest.mark.xdist_group("compiled_fused")  # with test_many_fast_rollouts_...[fused]: its graph, cached
 def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, monkeypatch):
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)  # the default rule (conftest sets 0)
     traj = long_run[0]
@@ -203,7 +203,13 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, mon
     runner = cached_fast_rollout(s, hierarchy)
     assert runner.compiled  # it did compile (no silent fallback on this machine)
     assert runner.cpp_wrapper  # a small step: its wrapper is C++
-    # K > 1 (inputs and network compiled apart) with the Python wrapper, what a large step gets
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("compiled_apart")  # with test_many_fast_rollouts_...[apart]: its graphs, cached
+def test_compiled_robin_fast_rollout_with_the_python_wrapper_equals_the_plain_rollout(long_run, hierarchy):
+    """K > 1 (inputs and network compiled apart) with the Python wrapper, what a large step gets."""
+    traj = long_run[0]
     robin = _surrogate(traj, hierarchy, diffusion_steps=3, **COMPILED)
     g = torch.Generator().manual_seed(3)
     ref = rollout(lambda d: robin.predict_residual(d, g), traj, hierarchy, robin.contact, num_steps=4)
@@ -337,10 +343,21 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("compiled_fast_rollout")  # the second finds the first's graphs cached
-def test_many_fast_rollouts_each_keep_their_compiled_step(long_run, hierarchy, monkeypatch):
+@pytest.mark.parametrize(
+    "diffusion_steps, cpp_wrapper",
+    [
+        pytest.param(1, None, id="fused", marks=pytest.mark.xdist_group("compiled_fused")),
+        pytest.param(3, False, id="apart", marks=pytest.mark.xdist_group("compiled_apart")),
+    ],
+)
+def test_many_fast_rollouts_each_keep_their_compiled_step(
+    long_run, hierarchy, monkeypatch, diffusion_steps, cpp_wrapper
+):
     """Dynamo caches compiled code per code object and stops compiling one after ``recompile_limit``
-    entries: the steps of many FastRollout objects (a design study over many meshes) must not share one."""
+    entries: the steps of many FastRollout objects (a design study over many meshes) must not share one.
+
+    The fused step (C++ wrapper) and the inputs and network compiled apart (Python wrapper):
+    the graphs of the two compiled tests above, found in Inductor's cache."""
     import torch._dynamo
 
     monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
@@ -348,15 +365,12 @@ def test_many_fast_rollouts_each_keep_their_compiled_step(long_run, hierarchy, m
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)
     traj = long_run[0]
     g = torch.Generator
-    # the fused step (C++ wrapper); the inputs and the network compiled apart (Python wrapper): the
-    # graphs of test_compiled_fast_rollout_equals_the_plain_rollout, found in Inductor's cache
-    for diffusion_steps, cpp_wrapper in ((1, None), (3, False)):
-        s = _surrogate(traj, hierarchy, diffusion_steps=diffusion_steps, **COMPILED)
-        ref = FastRollout(s, hierarchy, compile=False)([traj], [g().manual_seed(3)], num_steps=3)[0]
-        for _ in range(2):
-            fast = FastRollout(s, hierarchy, cpp_wrapper=cpp_wrapper)
-            with warnings.catch_warnings():
-                warnings.simplefilter("error")  # no "runs eagerly" fallback
-                out = fast([traj], [g().manual_seed(3)], num_steps=3)[0]
-            assert fast.compiled
-            torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+    s = _surrogate(traj, hierarchy, diffusion_steps=diffusion_steps, **COMPILED)
+    ref = FastRollout(s, hierarchy, compile=False)([traj], [g().manual_seed(3)], num_steps=3)[0]
+    for _ in range(2):
+        fast = FastRollout(s, hierarchy, cpp_wrapper=cpp_wrapper)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no "runs eagerly" fallback
+            out = fast([traj], [g().manual_seed(3)], num_steps=3)[0]
+        assert fast.compiled
+        torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)

@@ -67,14 +67,14 @@ def test_compiled_intra_level_conv_matches_eager():
 
 @pytest.mark.slow
 def test_compiled_ampn_matches_eager(toy):
-    """One layer per stage of the V-cycle: every kind of layer on every level, a third of the compile.
+    """One layer per stage of a 2-level V-cycle (every kind of layer): a fraction of the paper net's compile.
 
     Inference (no autograd graph), as the fast rollout compiles it; the compiled training step
     has its own test (tests/test_training.py)."""
     h, x_dict, e_dict, masks = toy
     torch.manual_seed(0)
     layers = dict(pre_layers=1, down_layers=1, solve_layers=1, post_layers=1, up_layers=1)
-    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=3, noise_channels=3, **layers)
+    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=2, noise_channels=3, **layers)
     noise = torch.randn(h["l0"].num_nodes, 3)
     with torch.no_grad():
         expected = model(x_dict, h.edge_index_dict, e_dict, noise=noise, contact_mask_dict=masks)
