@@ -31,32 +31,32 @@ def small_runs(small_sim):
     return simulate_batch(small_sim, seeds=[3, 4])
 
 
+def _copy_of(tmp_path_factory, source):
+    """A copy of the committed folder ``source`` (reading a dataset writes a hierarchy cache into it)."""
+    import shutil
+
+    copy = tmp_path_factory.mktemp(source.name) / "data"
+    shutil.copytree(source, copy)
+    return copy
+
+
 @pytest.fixture(scope="session")
 def tiny_data(tmp_path_factory):
     """A copy of the committed tiny dataset (``tests/data/tiny``: 2/1/1 trajectories of ``small_sim``).
 
-    A copy, because reading it writes a hierarchy cache into the folder. Made by
-    ``tests/make_fixtures.py``; ``tests/test_fixtures.py`` checks that it still makes it.
+    Made by ``tests/make_fixtures.py``; ``tests/test_fixtures.py`` checks that it still makes it.
     """
-    import shutil
-
     from make_fixtures import TINY_DATA
 
-    copy = tmp_path_factory.mktemp("tiny") / "data"
-    shutil.copytree(TINY_DATA, copy)
-    return copy
+    return _copy_of(tmp_path_factory, TINY_DATA)
 
 
 @pytest.fixture(scope="session")
 def tiny_family(tmp_path_factory):
     """A copy of the committed tiny family dataset (``tests/data/tiny_family``: parts of 2 and 3 plies)."""
-    import shutil
-
     from make_fixtures import TINY_FAMILY
 
-    copy = tmp_path_factory.mktemp("tiny_family") / "data"
-    shutil.copytree(TINY_FAMILY, copy)
-    return copy
+    return _copy_of(tmp_path_factory, TINY_FAMILY)
 
 
 @pytest.fixture(scope="session")
@@ -67,11 +67,10 @@ def tiny_fit(tmp_path_factory, tiny_data):
     ``reports/``; tests read it and write elsewhere. Tests that use it carry
     ``@pytest.mark.xdist_group("tiny_fit")``, so that ``pytest -n`` fits once, in one worker.
     """
-    from make_fixtures import fit_config, make_checkpoint
+    from make_fixtures import make_checkpoint
 
-    folder = tmp_path_factory.mktemp("tiny_fit")
-    make_checkpoint(folder, tiny_data)
-    return tiny_data, fit_config(folder, tiny_data)[1]
+    last = make_checkpoint(tmp_path_factory.mktemp("tiny_fit"), tiny_data)  # out/ckpt/last.ckpt
+    return tiny_data, last.parent.parent
 
 
 def pytest_collection_modifyitems(config, items):

@@ -140,8 +140,8 @@ def long_run(small_sim):
 
 def _surrogate(traj, hierarchy, **kwargs) -> AMPNSurrogate:
     """A small surrogate (d = 8, 3 levels: every kind of layer and a middle level) with random
-    weights and real statistics. Small, so that its compiled step compiles in seconds; the
-    quickstart's d = 32 compiles to the same kernels with other sizes."""
+    weights and real statistics. Small, so that its eager rollouts are quick; the compile time
+    hardly depends on d (the quickstart's d = 32 compiles to the same kernels)."""
     torch.manual_seed(0)
     args = dict(hidden_channels=8, mlp_channels=8, num_levels=3, pre_layers=1, down_layers=1,
                 solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1,

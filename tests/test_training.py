@@ -359,11 +359,6 @@ def test_datamodule_generates_an_empty_folder(tmp_path):
 
 
 # ---- the CLI -----------------------------------------------------------------------------------
-def _config(tmp_path, data_dir):
-    """The tiny fit's config (``tests/make_fixtures.py``) in ``tmp_path``: ``(path, output folder)``."""
-    return fit_config(tmp_path, data_dir)
-
-
 def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
     """Arguments of ``torch-ampn test`` / ``predict`` that take everything else from ``ckpt``."""
     args = ["--ckpt_path", str(ckpt), "--data.data_dir", str(data_dir), "--data.generate", "false"]
@@ -398,7 +393,7 @@ def test_a_model_of_a_family_of_parts_fits_and_tests_per_part(tmp_path, tiny_fam
     data = tiny_family
     plies = {len(Trajectory.load(f).meta["part"]["ply_angles"]) for f in sorted(data.glob("*/*.pt"))}
     assert plies == {2, 3}  # both stacks are there
-    config, out = _config(tmp_path, data)
+    config, out = fit_config(tmp_path, data)
     settings = yaml.safe_load(config.read_text())
     settings["model"].update(component_encoding="stack", num_components=5)
     settings["data"].update(batch_size=3)
@@ -765,7 +760,7 @@ def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(tiny_fit, tmp_path):
     the resumed run trains on the same batches with the same noise from the step it stopped at.
     """
     data_dir, whole = tiny_fit  # the uninterrupted fit
-    config, out = _config(tmp_path / "killed", data_dir)
+    config, out = fit_config(tmp_path / "killed", data_dir)
     last = out / "ckpt" / "last.ckpt"
     killing = yaml.safe_load(config.read_text())
     killing["trainer"]["callbacks"].append(
