@@ -1,10 +1,12 @@
 """Make the committed test fixtures: a tiny simulated dataset and a tiny trained checkpoint.
 
-    python tests/make_fixtures.py   # writes tests/data/tiny/, tests/data/tiny_family/, tests/data/tiny.ckpt
+    python tests/make_fixtures.py   # writes tests/data/tiny/, tests/data/tiny_family*/, tests/data/tiny.ckpt
 
 ``tests/data/tiny/``: 2 training, 1 validation and 1 test trajectory of the small simulator
 setting (``torch_ampn.testing.SMALL_SIMULATOR``, eager solver). ``tests/data/tiny_family/``:
-3/1/2 trajectories of a family of parts of that setting with 2 or 3 plies (two meshes).
+3/1/2 trajectories of a family of parts of that setting with 2 or 3 plies (two meshes);
+``tests/data/tiny_family_deep/``: 2 test parts of that family with deeper domes (55-60 mm), the
+extrapolation set of the family benchmark's test.
 ``tests/data/tiny.ckpt``: the ``last.ckpt`` of a 6-step CLI fit of a d = 16, 2-level model on
 the tiny dataset (:func:`fit_config`), the fit the test run makes once (``tiny_fit`` in
 ``tests/conftest.py``).
@@ -24,10 +26,13 @@ import yaml
 DATA = Path(__file__).parent / "data"
 #: The committed datasets and checkpoint.
 TINY_DATA, TINY_FAMILY, TINY_CKPT = DATA / "tiny", DATA / "tiny_family", DATA / "tiny.ckpt"
-#: Trajectories per split of the tiny dataset and of the tiny family dataset.
-SPLITS, FAMILY_SPLITS = (2, 1, 1), (3, 1, 2)
+TINY_FAMILY_DEEP = DATA / "tiny_family_deep"
+#: Trajectories per split of the tiny dataset, the tiny family dataset and its deep domes.
+SPLITS, FAMILY_SPLITS, DEEP_SPLITS = (2, 1, 1), (3, 1, 2), (0, 0, 2)
 #: The tiny family: parts of 2 and 3 plies (two meshes), the other ranges the defaults.
 FAMILY = {"num_plies": [2, 3]}
+#: The deep domes: the family's ranges with the dome depth beyond them.
+DEEP = {"dome_depth": [55.0, 60.0]}
 
 #: The network of the tiny fit; ``fast_rollout=False``: its validation, test and predict roll out
 #: on the plain path, which needs no compile (the fast path has tests of its own).
@@ -62,6 +67,17 @@ def make_family_dataset(out: Path) -> None:
     family = PartFamily.from_dict(FAMILY)
     options = dict(workers=1, compile=False, progress=False)
     generate_dataset(out, *FAMILY_SPLITS, config=config, family=family, **options)
+
+
+def make_family_deep_dataset(out: Path) -> None:
+    """Simulate the deep domes of the tiny family (:data:`DEEP`, :data:`DEEP_SPLITS`) into ``out``."""
+    from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset
+    from torch_ampn.testing import SMALL_SIMULATOR
+
+    config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
+    family = PartFamily.from_dict({**PartFamily.from_dict(FAMILY).to_dict(), **DEEP})
+    options = dict(workers=1, compile=False, progress=False)
+    generate_dataset(out, *DEEP_SPLITS, config=config, family=family, **options)
 
 
 def fit_config(folder: Path, data_dir: Path) -> tuple[Path, Path]:
@@ -123,7 +139,7 @@ def make_checkpoint(folder: Path, data_dir: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Write ``tests/data/tiny/``, ``tests/data/tiny_family/`` and ``tests/data/tiny.ckpt`` anew."""
+    """Write ``tests/data/tiny/``, ``tests/data/tiny_family*/`` and ``tests/data/tiny.ckpt`` anew."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -134,10 +150,12 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(TINY_DATA, ignore_errors=True)
         shutil.copytree(data, TINY_DATA)
         shutil.copyfile(ckpt, TINY_CKPT)
-        make_family_dataset(Path(tmp) / "tiny_family")
-        shutil.rmtree(TINY_FAMILY, ignore_errors=True)
-        shutil.copytree(Path(tmp) / "tiny_family", TINY_FAMILY)
-    print(f"wrote {TINY_DATA}, {TINY_FAMILY} and {TINY_CKPT}")
+        families = ((make_family_dataset, TINY_FAMILY), (make_family_deep_dataset, TINY_FAMILY_DEEP))
+        for make, committed in families:
+            make(Path(tmp) / committed.name)
+            shutil.rmtree(committed, ignore_errors=True)
+            shutil.copytree(Path(tmp) / committed.name, committed)
+    print(f"wrote {TINY_DATA}, {TINY_FAMILY}, {TINY_FAMILY_DEEP} and {TINY_CKPT}")
 
 
 if __name__ == "__main__":

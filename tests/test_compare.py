@@ -41,14 +41,31 @@ def setup(tmp_path_factory, tiny_data):
     return root, args
 
 
-@pytest.mark.slow
-def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypatch):
+@pytest.fixture(scope="module")
+def two_cells(setup):
+    """``compare.py`` run once with the AMPN and ROBIN K = 5 cells: ``(root, args, compare, cells)``.
+
+    The fast path runs eagerly (the timings' table is checked here, compiling in test_fast_rollout.py).
+    """
     root, args = setup
-    eager_fast_rollout(monkeypatch)  # the timings' fast path: the table is checked here, not the compile
     compare = _load_compare()
-    assert compare.main([*args, "--variants", "ampn", "robin5"]) == 0
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        eager_fast_rollout(monkeypatch)
+        assert compare.main([*args, "--variants", "ampn", "robin5"]) == 0
     results = root / "results"
     cells = {v: json.loads((results / f"{v}_seed0.json").read_text()) for v in ("ampn", "robin5")}
+    return root, args, compare, cells
+
+
+#: The tests of one ``two_cells`` run share a worker (xdist) and run in this file's order.
+two_cells_group = pytest.mark.xdist_group("compare_two_cells")
+
+
+@pytest.mark.slow
+@two_cells_group
+def test_two_cells_hold_their_tests_numbers(two_cells):
+    root, _, _, cells = two_cells
+    results = root / "results"
     for variant, cell in cells.items():
         summary = json.loads((root / "work" / f"{variant}_seed0" / "test" / "test_summary.json").read_text())
         assert cell["rmse"] == pytest.approx(summary["rollout_rmse"])  # the test's own number
@@ -64,7 +81,14 @@ def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypat
         assert states["steps"] == [4, 5, 6] and states["pos"].shape[0] == 3
     assert cells["robin5"]["changes"] == {"model.diffusion_steps": 5}
     assert cells["ampn"]["layers"] == cells["robin5"]["layers"] == 5
-    # the report: one row per variant (mean over the seeds present), the references and baselines
+
+
+@pytest.mark.slow
+@two_cells_group
+def test_the_report_has_a_row_per_variant_and_the_figures(two_cells):
+    root, _, _, cells = two_cells
+    results = root / "results"
+    # one row per variant (mean over the seeds present), the references and baselines
     table = json.loads((results / "table.json").read_text())["rows"]
     assert [r["variant"] for r in table] == ["ampn", "robin5", "simulator_rerun", "static", "rigid"]
     assert table[0]["rmse"] == pytest.approx(cells["ampn"]["rmse"]) and table[0]["seeds"] == [0]
@@ -73,20 +97,37 @@ def test_two_variants_end_to_end_and_a_rerun_skips_them(setup, capsys, monkeypat
     assert "ROBIN, K = 5" in markdown and "missing" not in markdown
     for name in ("compare_rmse_over_time.png", "compare_fig2.png", "compare_fig3.png"):
         assert (results / "figures" / name).is_file(), name
+
+
+@pytest.mark.slow
+@two_cells_group
+def test_a_rerun_skips_done_cells_and_a_failed_cell_writes_nothing(two_cells, capsys):
+    root, args, compare, cells = two_cells
+    results = root / "results"
     # a second run finds both cells done: nothing is fitted again
     logs = {v: (root / "work" / f"{v}_seed0" / "log.txt").stat().st_mtime for v in cells}
+    simulator = (results / "simulator.json").stat().st_mtime
     capsys.readouterr()
     assert compare.main([*args, "--variants", "ampn", "robin5", "--no-figures"]) == 0
     assert "2 cells done before, skipped" in capsys.readouterr().out
     assert {v: (root / "work" / f"{v}_seed0" / "log.txt").stat().st_mtime for v in cells} == logs
     # a cell that fails leaves no result, and the run goes on with the next one
-    capsys.readouterr()
     broken = [*args, "--variants", "radius", "ampn", "--no-figures", "--set", "model.contact_mode", "none"]
     assert compare.main(broken) == 1
     printed = capsys.readouterr().out
+    assert "the embedded simulator: measured before (simulator.json)" in printed  # same data, not again
+    assert (results / "simulator.json").stat().st_mtime == simulator
     assert "radius seed 0: FAILED, no result written" in printed
     assert "1 cell(s) failed: radius_seed0" in printed
     assert not (results / "radius_seed0.json").exists()
+
+
+@pytest.mark.slow
+@two_cells_group
+def test_timings_feed_the_table_and_a_variant_without_cells_is_missing(two_cells, monkeypatch):
+    root, args, compare, _ = two_cells
+    results = root / "results"
+    eager_fast_rollout(monkeypatch)
     # side-by-side timings from the saved weights: the table's rollout column comes from them
     assert (results / "ampn_seed0.ckpt").is_file()
     assert compare.main([*args, "--variants", "ampn", "--timings", "--repeats", "1", "--no-figures"]) == 0

@@ -41,12 +41,33 @@ def _cli(*args, cwd):
     return done
 
 
-@pytest.fixture(scope="module")
-def ddp_run(tmp_path_factory, small_sim):
-    from torch_ampn.sim import generate_dataset
+#: The DDP dataset: 3/3/3 trajectories (odd counts, which a 2-rank DistributedSampler would pad
+#: with a repeat) copied from the 4 of the committed tiny dataset under new names.
+DDP_SPLITS = {
+    "train": ["train/traj_000000", "train/traj_000001", "val/traj_100000"],
+    "val": ["val/traj_100000", "test/traj_200000", "train/traj_000000"],
+    "test": ["test/traj_200000", "val/traj_100000", "train/traj_000001"],
+}
+FIRST_FILE = {"train": 0, "val": 100000, "test": 200000}
 
+
+def _ddp_dataset(folder, tiny_data):
+    """:data:`DDP_SPLITS` in ``folder``: what is checked (statistics, each trajectory once) needs
+    names, not new physics, so nothing is simulated."""
+    import shutil
+
+    for split, sources in DDP_SPLITS.items():
+        (folder / split).mkdir(parents=True)
+        for i, source in enumerate(sources):
+            name = f"traj_{FIRST_FILE[split] + i:06d}.pt"
+            shutil.copyfile(tiny_data / f"{source}.pt", folder / split / name)
+    shutil.copyfile(tiny_data / "dataset.json", folder / "dataset.json")
+
+
+@pytest.fixture(scope="module")
+def ddp_run(tmp_path_factory, tiny_data):
     root = tmp_path_factory.mktemp("ddp")
-    generate_dataset(root / "data", 3, 3, 3, config=small_sim, workers=1, compile=False, progress=False)
+    _ddp_dataset(root / "data", tiny_data)
     out = root / "out"
     config = {
         "seed_everything": 0,

@@ -1,7 +1,9 @@
 """benchmarks/family.py end to end on a tiny budget: both cells, one at a time, the table, resuming."""
 
+import contextlib
 import csv
 import importlib.util
+import io
 import json
 import shutil
 import sys
@@ -13,7 +15,7 @@ import yaml
 pytest.importorskip("lightning")
 
 from helpers import tiny_cli_config  # noqa: E402
-from make_fixtures import TINY_FAMILY  # noqa: E402
+from make_fixtures import DEEP, TINY_FAMILY, TINY_FAMILY_DEEP  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,17 +33,13 @@ def _config(simulator: dict, **model) -> dict:
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory, small_sim, tiny_data):
-    """Tiny single-part and family configs; their datasets made beforehand without compiling the solver."""
-    from torch_ampn.sim import PartFamily, generate_dataset
+def setup(tmp_path_factory, tiny_data):
+    """Tiny single-part and family configs on copies of the committed datasets (tests/data)."""
     from torch_ampn.testing import SMALL_SIMULATOR
 
     root = tmp_path_factory.mktemp("family_bench")
-    family = PartFamily(num_plies=(2, 3))
-    options = dict(config=small_sim, workers=1, compile=False, progress=False)
     shutil.copytree(TINY_FAMILY, root / "family")  # the benchmark writes family_seen/ beside it
-    deeper = PartFamily.from_dict({**family.to_dict(), "dome_depth": [55.0, 60.0]})
-    generate_dataset(root / "family_deep", 0, 0, 2, family=deeper, **options)
+    shutil.copytree(TINY_FAMILY_DEEP, root / "family_deep")  # the extrapolation set "deep"
     single = _config(SMALL_SIMULATOR)
     single["data"].update(num_train=2, num_val=1, num_test=1)
     fam = _config(SMALL_SIMULATOR, component_encoding="stack", num_components=5)
@@ -52,7 +50,7 @@ def setup(tmp_path_factory, small_sim, tiny_data):
         "--single-config", str(root / "single.yaml"), "--family-config", str(root / "family.yaml"),
         "--single-data", str(tiny_data), "--family-data", str(root / "family"),
         "--num-train", "3", "--num-val", "1", "--num-test", "2",
-        "--extrapolation", 'deep={"dome_depth": [55.0, 60.0]}', "--num-extrapolation", "2",
+        "--extrapolation", f"deep={json.dumps(DEEP)}", "--num-extrapolation", "2",
         "--num-seen", "2",
         "--steps", "3", "--results", str(root / "results"), "--workdir", str(root / "work"),
     ]  # fmt: skip
@@ -64,34 +62,52 @@ def _test_rows(folder: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-@pytest.mark.slow
-def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys):
+@pytest.fixture(scope="module")
+def family_cell(setup):
+    """The family cell run alone: ``(root, args, bench, printed)``."""
     root, args = setup
     bench = _load_family_bench()
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        assert bench.main([*args, "--cells", "family"]) == 0
+    return root, args, bench, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def both_cells(family_cell):
+    """Then the whole benchmark: ``(root, args, bench, printed, single cell, family cell)``."""
+    root, args, bench, _ = family_cell
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        assert bench.main(args) == 0
     results = root / "results"
-    # one cell alone: no report until both are there
-    assert bench.main([*args, "--cells", "family"]) == 0
-    assert (results / "family_seed0.json").exists() and not (results / "single_seed0.json").exists()
-    assert not (results / "table.json").exists() and "report: waits" in capsys.readouterr().out
-    assert bench.main(args) == 0
-    assert "family: done before, skipped" in capsys.readouterr().out
     single = json.loads((results / "single_seed0.json").read_text())
     family = json.loads((results / "family_seed0.json").read_text())
+    return root, args, bench, out.getvalue(), single, family
+
+
+#: The tests of one benchmark run share a worker (xdist) and run in this file's order.
+bench_group = pytest.mark.xdist_group("family_bench")
+
+
+@pytest.mark.slow
+@bench_group
+def test_one_cell_alone_writes_no_report(family_cell):
+    root, _, _, printed = family_cell
+    results = root / "results"
+    assert (results / "family_seed0.json").exists() and not (results / "single_seed0.json").exists()
+    assert not (results / "table.json").exists() and "report: waits" in printed
+
+
+@pytest.mark.slow
+@bench_group
+def test_both_cells_share_the_budget_and_test_every_set(both_cells):
+    root, _, _, printed, single, family = both_cells
+    assert "family: done before, skipped" in printed
     assert (
         single["steps"] == family["steps"] == 3 and single["seed"] == family["seed"] == 0
     )  # the same budget
     assert list(single["sets"]) == ["single"] and list(family["sets"]) == ["inside", "seen", "deep"]
-    assert family["num_train"] == 3 and family["sets"]["deep"]["family_changes"] == {
-        "dome_depth": [55.0, 60.0]
-    }
-    # every set is its own test folder: RMSE = the mean of the per-trajectory rows, parts named
-    folders = {
-        "single": root / "work" / "single_seed0" / "test",
-        "inside": root / "work" / "family_seed0" / "test",
-        "seen": root / "work" / "family_seed0" / "test_seen",
-        "deep": root / "work" / "family_seed0" / "test_deep",
-    }
-    rows = {name: _test_rows(folder) for name, folder in folders.items()}
+    assert family["num_train"] == 3 and family["sets"]["deep"]["family_changes"] == DEEP
+    rows = {name: _test_rows(folder) for name, folder in _test_folders(root).items()}
     assert len(rows["single"]) == 1 and len(rows["inside"]) == 2 and len(rows["deep"]) == 2
     # the seen set is the first two training trajectories, byte for byte
     train = sorted((root / "family" / "train").glob("*.pt"))[:2]
@@ -101,10 +117,29 @@ def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys
     assert not list((root / "family_seen").rglob("*.tmp"))
     depths = [float(r["part"].rsplit(", ", 1)[1].removesuffix(" mm")) for r in rows["deep"]]
     assert all(55 <= d <= 60 for d in depths)  # the extrapolation set is the deeper domes
+
+
+def _test_folders(root: Path) -> dict[str, Path]:
+    """Every set is its own test folder."""
+    return {
+        "single": root / "work" / "single_seed0" / "test",
+        "inside": root / "work" / "family_seed0" / "test",
+        "seen": root / "work" / "family_seed0" / "test_seen",
+        "deep": root / "work" / "family_seed0" / "test_deep",
+    }
+
+
+@pytest.mark.slow
+@bench_group
+def test_the_table_holds_each_sets_mean_and_every_test_part(both_cells):
+    root = both_cells[0]
+    results = root / "results"
+    folders = _test_folders(root)
+    rows = {name: _test_rows(folder) for name, folder in folders.items()}
     table = json.loads((results / "table.json").read_text())
     by_set = {r["set"]: r for r in table["rows"]}
     assert list(by_set) == ["single", "inside", "seen", "deep"]
-    for name, set_rows in rows.items():
+    for name, set_rows in rows.items():  # RMSE = the mean of the per-trajectory rows, parts named
         mean = sum(float(r["model"]) for r in set_rows) / len(set_rows)
         summary = json.loads((folders[name] / "test_summary.json").read_text())
         row = by_set[name]
@@ -116,7 +151,12 @@ def test_single_and_family_cells_end_to_end_and_a_rerun_skips_them(setup, capsys
         assert f"| {r['trajectory']} | {r['part']} |" in markdown  # one row per test part
     assert "missing" not in markdown
     assert (results / "best_and_worst.png").stat().st_size > 10_000
-    # a second run finds both cells done: nothing is fitted again
+
+
+@pytest.mark.slow
+@bench_group
+def test_a_rerun_fits_nothing_again(both_cells, capsys):
+    root, args, bench, *_ = both_cells
     logs = {c: (root / "work" / f"{c}_seed0" / "log.txt").stat().st_mtime for c in ("single", "family")}
     capsys.readouterr()
     assert bench.main([*args, "--no-figures"]) == 0

@@ -186,9 +186,12 @@ def test_fast_rollout_of_a_stack_encoded_model_with_spare_components(long_run, h
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
 
 
-#: The compiled tests' surrogates: two levels hold every kind of layer with the fewest ops to
-#: compile (a compile costs about a minute per step graph on 2 cores, whatever d).
-COMPILED = dict(num_levels=2)
+#: The compiled tests' surrogates, the fewest ops that hold the graph each test checks (a compile
+#: costs about a minute per step graph and layer count on 2 cores, whatever d): the fused step
+#: (features, contact slots, an intra-level layer and the update in one graph) on a flat network
+#: of one layer; the network compiled apart on the two inter-level stacks of a 2-level V-cycle.
+FUSED = dict(num_levels=1, pre_layers=0, post_layers=0)
+APART = dict(num_levels=2, pre_layers=0, solve_layers=0, post_layers=0)
 
 
 @pytest.mark.slow
@@ -196,7 +199,7 @@ COMPILED = dict(num_levels=2)
 def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, monkeypatch):
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)  # the default rule (conftest sets 0)
     traj = long_run[0]
-    s = _surrogate(traj, hierarchy, **COMPILED)
+    s = _surrogate(traj, hierarchy, **FUSED)
     ref = _plain(s, traj, hierarchy)
     out = rollout(s, traj, hierarchy, fast=True, generator=torch.Generator().manual_seed(3))
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
@@ -210,7 +213,7 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, mon
 def test_compiled_robin_fast_rollout_with_the_python_wrapper_equals_the_plain_rollout(long_run, hierarchy):
     """K > 1 (inputs and network compiled apart) with the Python wrapper, what a large step gets."""
     traj = long_run[0]
-    robin = _surrogate(traj, hierarchy, diffusion_steps=3, **COMPILED)
+    robin = _surrogate(traj, hierarchy, diffusion_steps=3, **APART)
     g = torch.Generator().manual_seed(3)
     ref = rollout(lambda d: robin.predict_residual(d, g), traj, hierarchy, robin.contact, num_steps=4)
     python_wrapper = FastRollout(robin, hierarchy, cpp_wrapper=False)
@@ -365,7 +368,8 @@ def test_many_fast_rollouts_each_keep_their_compiled_step(
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)
     traj = long_run[0]
     g = torch.Generator
-    s = _surrogate(traj, hierarchy, diffusion_steps=diffusion_steps, **COMPILED)
+    layers = FUSED if diffusion_steps == 1 else APART
+    s = _surrogate(traj, hierarchy, diffusion_steps=diffusion_steps, **layers)
     ref = FastRollout(s, hierarchy, compile=False)([traj], [g().manual_seed(3)], num_steps=3)[0]
     for _ in range(2):
         fast = FastRollout(s, hierarchy, cpp_wrapper=cpp_wrapper)

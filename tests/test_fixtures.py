@@ -8,13 +8,16 @@ import torch
 pytest.importorskip("lightning")
 
 from make_fixtures import (  # noqa: E402
+    DEEP_SPLITS,
     FAMILY_SPLITS,
     SPLITS,
     TINY_CKPT,
     TINY_DATA,
     TINY_FAMILY,
+    TINY_FAMILY_DEEP,
     make_dataset,
     make_family_dataset,
+    make_family_deep_dataset,
 )
 
 from torch_ampn.data import Trajectory  # noqa: E402
@@ -22,8 +25,12 @@ from torch_ampn.data import Trajectory  # noqa: E402
 
 @pytest.mark.parametrize(
     "make, committed_dir, splits",
-    [(make_dataset, TINY_DATA, SPLITS), (make_family_dataset, TINY_FAMILY, FAMILY_SPLITS)],
-    ids=["tiny", "tiny_family"],
+    [
+        (make_dataset, TINY_DATA, SPLITS),
+        (make_family_dataset, TINY_FAMILY, FAMILY_SPLITS),
+        (make_family_deep_dataset, TINY_FAMILY_DEEP, DEEP_SPLITS),
+    ],
+    ids=["tiny", "tiny_family", "tiny_family_deep"],
 )
 def test_the_script_still_simulates_the_committed_dataset(tmp_path, make, committed_dir, splits):
     folder = tmp_path / "made"

@@ -593,11 +593,11 @@ def test_ema_weight_averaging_keeps_statistics_and_averages_by_hand(data_dir):
 
 
 def _fit_three_steps_compiled(data_dir, **kwargs):
-    """3 steps of a flat network (``num_levels=1``): the compile of the training step (forward and
+    """3 steps of a flat network of one layer: the compile of the training step (forward and
     backward, dynamic shapes) is what the compile tests here are about; the compiled V-cycle's
-    layers are checked against eager in tests/test_nn_compile.py, at half this compile time."""
+    layers are checked against eager in tests/test_nn_compile.py, at a fraction of this compile time."""
     L.seed_everything(0)
-    model = {**SMALL_MODEL, "num_levels": 1}
+    model = {**SMALL_MODEL, "num_levels": 1, "pre_layers": 0, "post_layers": 0}
     module = AMPNLightningModule(**model, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
     dm = AMPNDataModule(str(data_dir), generate=False, max_levels=1, min_coarse_nodes=4, batch_size=2)
     _quiet_trainer(max_steps=3).fit(module, datamodule=dm)
