@@ -13,11 +13,6 @@ import pytest
 # mesh out only once. The tests of the default rule unset it (tests/test_fast_rollout.py).
 os.environ.setdefault("TORCHINDUCTOR_CPP_WRAPPER", "0")
 
-# Inductor's C++ kernels at -O0 (its debug-compile switch; also inherited by the fits and notebooks
-# the tests start): the tests check a compiled graph's numbers, not gcc's optimisations, and -O0
-# compiles a step graph about 15 s (a fifth) faster on 2 cores than the -O3 users get.
-os.environ.setdefault("TORCHINDUCTOR_DEBUG_COMPILE", "1")
-
 
 @pytest.fixture(scope="session")
 def small_sim():
@@ -83,3 +78,11 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.endswith(".ipynb"):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def unoptimised_kernels(monkeypatch):
+    """Inductor's C++ kernels at -O0 (its debug-compile switch) in a compile test: the test checks
+    a compiled graph's numbers, not gcc's optimisations, and -O0 compiles a step graph about
+    15 s (a fifth) faster on 2 cores. Only where little runs compiled: -O0 kernels run slowly."""
+    monkeypatch.setenv("TORCHINDUCTOR_DEBUG_COMPILE", "1")

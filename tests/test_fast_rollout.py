@@ -196,6 +196,7 @@ APART = dict(num_levels=2, pre_layers=0, solve_layers=0, post_layers=0)
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("compiled_fused")  # with test_many_fast_rollouts_...[fused]: its graph, cached
+@pytest.mark.usefixtures("unoptimised_kernels")
 def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, monkeypatch):
     monkeypatch.delenv("TORCHINDUCTOR_CPP_WRAPPER", raising=False)  # the default rule (conftest sets 0)
     traj = long_run[0]
@@ -210,6 +211,7 @@ def test_compiled_fast_rollout_equals_the_plain_rollout(long_run, hierarchy, mon
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("compiled_apart")  # with test_many_fast_rollouts_...[apart]: its graphs, cached
+@pytest.mark.usefixtures("unoptimised_kernels")
 def test_compiled_robin_fast_rollout_with_the_python_wrapper_equals_the_plain_rollout(long_run, hierarchy):
     """K > 1 (inputs and network compiled apart) with the Python wrapper, what a large step gets."""
     traj = long_run[0]
@@ -353,6 +355,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
         pytest.param(3, False, id="apart", marks=pytest.mark.xdist_group("compiled_apart")),
     ],
 )
+@pytest.mark.usefixtures("unoptimised_kernels")
 def test_many_fast_rollouts_each_keep_their_compiled_step(
     long_run, hierarchy, monkeypatch, diffusion_steps, cpp_wrapper
 ):

@@ -55,6 +55,28 @@ def test_ampn_has_no_graph_breaks(toy):
     assert explanation.graph_break_count == 0 and explanation.graph_count == 1
 
 
+@pytest.mark.slow
+@pytest.mark.usefixtures("unoptimised_kernels")
+def test_compiled_layer_gradients_match_eager_on_two_sizes():
+    """The training step's compile (Inductor, forward and backward, ``dynamic=True``) on one
+    message-passing layer (InterLevelConv: an edge and a node MLP, scatter aggregation): input
+    and parameter gradients equal eager's on two graph sizes, from one compiled graph."""
+    torch.manual_seed(0)
+    conv = InterLevelConv(16, mlp_channels=32)
+    compiled = torch.compile(conv, dynamic=True)
+    for num_src, num_dst, num_edges in ((20, 6, 30), (27, 9, 41)):
+        x_src, x_dst, edge_index, e = random_inter_level_inputs(num_src, num_dst, num_edges, channels=16)
+        grads = []
+        for model in (conv, compiled):
+            x = x_src.clone().requires_grad_()
+            out = model((x, x_dst), edge_index, e)
+            loss = sum((o * torch.linspace(-1, 1, o.numel()).view_as(o)).sum() for o in out)
+            grads.append(torch.autograd.grad(loss, [x, *conv.parameters()]))
+        for g_comp, g_eager in zip(grads[1], grads[0], strict=True):
+            torch.testing.assert_close(g_comp, g_eager, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.usefixtures("unoptimised_kernels")
 def test_compiled_intra_level_conv_matches_eager():
     torch.manual_seed(0)
     conv = IntraLevelConv(16, mlp_channels=32)
@@ -66,6 +88,7 @@ def test_compiled_intra_level_conv_matches_eager():
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("unoptimised_kernels")
 def test_compiled_ampn_matches_eager(toy):
     """A 2-level V-cycle of one layer of each kind (Down, Solve with contact edges, Up): a
     fraction of the paper net's compile (Pre and Post are Solve's kind of layer on another level).

@@ -21,6 +21,7 @@ from make_fixtures import SMALL_MODEL, TINY_CKPT, fit_config  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
+from torch_ampn.rollout import rollout_rmse  # noqa: E402
 from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
@@ -448,9 +449,21 @@ def test_cli_fit_test_predict_end_to_end(tiny_fit, tmp_path, capsys):
     with open(reports / "rmse_over_time.csv") as f:
         over_time = list(csv.DictReader(f))
     assert [int(r["step"]) for r in over_time] == list(range(7)) and float(over_time[0]["model"]) == 0
-    assert set(over_time[0]) == {"step", "model", *baselines}
+    aware = ["mean_trajectory", "nearest_setting", "linear_settings", "pod_gp"]
+    assert set(over_time[0]) == {"step", "model", *baselines, *aware}
     # averaging over steps then trajectories (the summary) = over trajectories then steps (the CSV)
     assert sum(float(r["model"]) for r in over_time[1:]) / 6 == pytest.approx(model, rel=1e-5)
+    # the setting-aware baselines, fitted on the 2 training trajectories: the mean one by hand
+    train = [Trajectory.load(f) for f in sorted((data_dir / "train").glob("*.pt"))]
+    test_traj = Trajectory.load(data_dir / "test" / "traj_200000.pt")
+    mean = torch.stack([t.pos.double() for t in train]).mean(0)
+    by_hand = float(rollout_rmse(mean, test_traj.pos, test_traj.ply_mask)[1:].mean())
+    assert float(rows[0]["mean_trajectory"]) == pytest.approx(by_hand, rel=1e-5)
+    assert summary["mean_trajectory_rmse"] == pytest.approx(by_hand, rel=1e-5)
+    assert summary["setting_baseline_rmse"] == pytest.approx(min(float(rows[0][k]) for k in aware), rel=1e-6)
+    mse = {k: sum(float(r[k]) ** 2 for r in over_time[1:]) / 6 for k in ("model", "mean_trajectory")}
+    assert summary["setting_effect_r2"] == pytest.approx(1 - mse["model"] / mse["mean_trajectory"], rel=1e-5)
+    assert "best setting-aware baseline" in printed
     for name in ("rmse_over_time.png", "final_shape_traj_200000.png", "xdmf/traj_200000.xdmf"):
         assert (reports / name).is_file(), name
 
@@ -605,9 +618,15 @@ def _fit_three_steps_compiled(data_dir, **kwargs):
 
 
 @pytest.mark.slow
-def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(data_dir):
+def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(data_dir, monkeypatch):
+    """``compile_network`` through the Trainer: Dynamo's capture and AOT autograd's forward and
+    backward graphs (backend ``aot_eager``); Inductor's forward and backward kernels are checked
+    on one layer in tests/test_nn_compile.py, at a fraction of the whole network's compile."""
+    import functools
+
     torch._dynamo.reset()
     eager = _fit_three_steps_compiled(data_dir)
+    monkeypatch.setattr(torch, "compile", functools.partial(torch.compile, backend="aot_eager"))
     compiled = _fit_three_steps_compiled(data_dir, compile_network=True)
     torch._dynamo.reset()
     assert compiled._compiled_network not in (None, False)  # the compiled network trained

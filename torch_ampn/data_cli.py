@@ -5,11 +5,13 @@
     torch-ampn-data generate --out data/paper --resolution paper --device cuda --batch 32    # on a GPU
     torch-ampn-data generate --out data/family --family default    # every trajectory its own part
     torch-ampn-data check data/default
+    torch-ampn-data spread data/default --split train --chaos 2   # do the settings matter?
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
 
 ``generate`` runs :func:`torch_ampn.sim.generate_dataset` (dataset layout and seeds: see
-:mod:`torch_ampn.sim.dataset`).
+:mod:`torch_ampn.sim.dataset`); ``spread`` measures how far the settings move the plies
+against the forming's chaos floor (:mod:`torch_ampn.sim.spread`).
 """
 
 from __future__ import annotations
@@ -48,6 +50,28 @@ def _check(root: Path) -> int:
         print(f"problem: {line}", file=sys.stderr)
     print(f"{root}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
     return 1 if problems else 0
+
+
+def _spread(root: Path, split: str, chaos: int, perturbation: float, out: Path | None) -> int:
+    """Print (and write as JSON) the setting spread of ``root/split`` against its chaos floor."""
+    from torch_ampn.data.dataset import split_files
+    from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
+
+    files = split_files(root, split)
+    if len(files) < 2:
+        raise ValueError(f"{root / split}: the spread needs at least 2 trajectories, found {len(files)}")
+    trajectories = [Trajectory.load(f) for f in files]
+    spread = setting_spread(trajectories)
+    print(f"chaos floor: simulating {chaos} trajectories again from a perturbed start ...", flush=True)
+    report = spread_report(spread, chaos_floor(trajectories[:chaos], perturbation))
+    report.update(dataset=str(root), split=split)
+    print(format_report(report))
+    if out is not None:
+        from torch_ampn.data.io import atomic_write_text
+
+        atomic_write_text(out, json.dumps(report, indent=1))
+        print(f"wrote {out}")
+    return 0
 
 
 def _family(spec: str | None) -> PartFamily | None:
@@ -110,6 +134,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     k = sub.add_parser("check", help="load every trajectory of a dataset folder and summarise it")
     k.add_argument("root", type=Path)
+    s = sub.add_parser("spread", help="how far the settings move the plies, against the chaos floor")
+    s.add_argument("root", type=Path)
+    s.add_argument("--split", default="train")
+    s.add_argument("--chaos", type=int, default=2, help="trajectories simulated again (default 2)")
+    s.add_argument("--perturbation", type=float, default=1e-6, help="initial ply displacement, mm")
+    s.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     c = sub.add_parser("convert", help="meshio time series (.xdmf or folder of .vtu) -> trajectory .pt")
     c.add_argument("input", type=Path)
     c.add_argument("--out", type=Path, required=True)
@@ -135,6 +165,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{len(paths)} trajectories in {args.out}")
         elif args.command == "check":
             return _check(args.root)
+        elif args.command == "spread":
+            if args.chaos < 1:
+                raise ValueError(f"--chaos must be >= 1, got {args.chaos}")
+            return _spread(args.root, args.split, args.chaos, args.perturbation, args.json)
         elif args.command == "convert":
             from torch_ampn.data.meshio_io import read_time_series
 

@@ -409,6 +409,7 @@ def simulate_batch(
     progress: bool = False,
     compile: bool = False,
     device: torch.device | str = "cpu",
+    perturbation: float = 0.0,
 ) -> list[Trajectory]:
     """Simulate one process per seed, all at once, and return their trajectories.
 
@@ -426,6 +427,10 @@ def simulate_batch(
         device: Where the solver runs (e.g. ``"cuda"``: worth it for many trajectories at
             once or fine meshes); the set-up and the returned trajectories are on the CPU.
             Another device gives other last bits, which the forming amplifies.
+        perturbation: Move every free coordinate of the initial ply nodes by a uniform random
+            amount in ``[-perturbation, perturbation]`` mm (drawn from the seed; 0: none): the
+            same settings from an imperceptibly different start, to measure how chaotic the
+            forming is (:mod:`torch_ampn.sim.spread`). Recorded in ``meta["initial_perturbation"]``.
 
     Returns:
         One :class:`~torch_ampn.data.Trajectory` per seed, each with ``num_steps + 1``
@@ -441,6 +446,13 @@ def simulate_batch(
     step = model.step_function(compile)
     n, copies = model.n, model.copies
     x, v = model.x0.clone(), torch.zeros_like(model.x0)
+    if perturbation < 0:
+        raise ValueError(f"perturbation must be >= 0 mm, got {perturbation}")
+    if perturbation > 0:
+        for b, seed in enumerate(seeds):
+            g = torch.Generator().manual_seed(int(seed))
+            noise = (2 * torch.rand(n, 3, generator=g, dtype=x.dtype) - 1) * perturbation  # [n, 3]
+            x[b * n : (b + 1) * n] += noise.to(x.device) * model.free[b * n : (b + 1) * n]
     frames = [x.clone()]
     steps = range(1, cfg.num_steps + 1)
     if progress:
@@ -477,6 +489,7 @@ def simulate_batch(
                 config=cfg.to_dict(),
                 substeps=model.substeps,
                 gripper_edge_fraction=where.tolist(),
+                **({"initial_perturbation": float(perturbation)} if perturbation else {}),
             )
         )
     return out

@@ -220,6 +220,12 @@ class AMPNDataModule(L.LightningDataModule):
         if stage == "predict":
             self._splits["predict"] = self._predict_split()
 
+    def training_trajectories(self) -> list[Trajectory]:
+        """Every trajectory of the training split (for the setting-aware baselines of ``test``)."""
+        if not split_files(self.data_dir, "train"):
+            return []
+        return list(TrajectoryDataset(self.data_dir, "train", max_cached_mb=0))
+
     def _predict_split(self) -> RolloutDataset:
         from torch_ampn.sim.simulate import process_trajectory
 

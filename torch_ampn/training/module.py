@@ -13,7 +13,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
-from torch_ampn.baselines import RigidWithPunch, static_plies
+from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
 from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn.surrogate import AMPNSurrogate
@@ -460,9 +460,15 @@ class AMPNLightningModule(L.LightningModule):
             self.log("val/rollout_rmse", sum(merged.values()) / len(merged), prog_bar=True, batch_size=1)
 
     def on_test_epoch_start(self) -> None:
-        """Check the test trajectories' meshes; start a new test report."""
+        """Check the test trajectories' meshes; fit the setting-aware baselines; start a new test report."""
         self._check_meshes("test")
         self._report = TestReport(self.output_dir())
+        self._setting_baselines, reason = {}, "no training split to fit them on"
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if hasattr(datamodule, "training_trajectories"):
+            self._setting_baselines, reason = fit_setting_baselines(datamodule.training_trajectories())
+        if reason is not None and self.trainer.is_global_zero:
+            print(f"setting-aware baselines: not reported ({reason})")
 
     def test_step(self, item: RolloutItem, batch_idx: int) -> Tensor:
         """Rollout of one test trajectory next to the baselines; rows go to the report."""
@@ -475,6 +481,8 @@ class AMPNLightningModule(L.LightningModule):
         for radius in self.hparams.touch_radii:
             rigid = rollout(RigidWithPunch(radius), traj, item.hierarchy)
             baselines[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
+        for name, baseline in getattr(self, "_setting_baselines", {}).items():
+            baselines[name] = rollout_rmse(baseline.predict(traj), traj.pos, traj.ply_mask)
         assert self._report is not None
         self._report.add(item, pred, rmse, baselines, seconds, xdmf=self.hparams.export_xdmf)
         return rmse[1:].mean()
@@ -486,7 +494,8 @@ class AMPNLightningModule(L.LightningModule):
         if self.trainer.is_global_zero:
             self._report.merge(parts)
             summary = self._report.finish()
-            self.log_dict({f"test/{k}": float(v) for k, v in summary.items()}, rank_zero_only=True)
+            numbers = {f"test/{k}": float(v) for k, v in summary.items() if isinstance(v, (int, float))}
+            self.log_dict(numbers, rank_zero_only=True)
 
     def on_predict_epoch_start(self) -> None:
         """Check that the process settings' mesh is one the model was trained on."""

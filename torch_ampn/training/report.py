@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torch_ampn.baselines.settings import SETTING_BASELINE_NAMES
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.training.items import RolloutItem
 
@@ -66,6 +67,10 @@ def part_label(part: dict | None) -> str:
         return ""
     shape = str(part.get("shape", "part")).replace("_", " ")
     return f"{shape}, {len(part.get('ply_angles', ()))} plies, {float(part.get('dome_depth', 0.0)):.0f} mm"
+
+
+#: The setting-aware baselines' columns (:func:`torch_ampn.baselines.setting_baselines`).
+SETTING_BASELINES = SETTING_BASELINE_NAMES
 
 
 class TestReport:
@@ -127,13 +132,23 @@ class TestReport:
         kinds = list(found[names[0]][1]) if names else []
         self.curves = {kind: [found[n][1][kind] for n in names] for kind in kinds}
 
-    def summary(self) -> dict[str, float]:
-        """Means over trajectories: model, static, best rigid and best baseline RMSE, and the ratio."""
+    def mse(self, name: str) -> float:
+        """Mean over trajectories and steps ``1 .. T`` of ``name``'s squared per-step RMSE (mm^2)."""
+        curves = self.curves[name]
+        return float(sum(c[1:].double().square().mean() for c in curves) / len(curves))
+
+    def summary(self) -> dict[str, float | str]:
+        """Means over trajectories: model, static, best rigid and best trivial baseline RMSE, the ratio.
+
+        With setting-aware baselines (:data:`SETTING_BASELINES`), the best of them and the
+        explained variance of the setting effect (``setting_effect_r2``: model against the mean
+        training trajectory, :func:`~torch_ampn.baselines.setting_effect_r2`).
+        """
         mean = {k: sum(r[k] for r in self.rows) / len(self.rows) for k in self._numeric()}
         rigid = {k: v for k, v in mean.items() if k.startswith("rigid")}
         best_rigid = min(rigid, key=rigid.get) if rigid else None
         baseline = min(mean["static"], rigid[best_rigid] if best_rigid else float("inf"))
-        out = {
+        out: dict[str, float | str] = {
             "rollout_rmse": mean["model"],
             "static_rmse": mean["static"],
             "baseline_rmse": baseline,
@@ -143,6 +158,20 @@ class TestReport:
         if best_rigid:
             out["rigid_rmse"] = rigid[best_rigid]
             out["rigid_touch_radius"] = float(best_rigid.removeprefix("rigid_r"))
+        aware = {k: mean[k] for k in SETTING_BASELINES if k in mean}
+        if aware:
+            from torch_ampn.baselines import setting_effect_r2
+
+            best = min(aware, key=aware.get)
+            reference = self.mse("mean_trajectory")
+            out.update(
+                mean_trajectory_rmse=aware["mean_trajectory"],
+                setting_baseline=best,
+                setting_baseline_rmse=aware[best],
+                model_over_setting_baseline=mean["model"] / max(aware[best], 1e-12),
+                setting_effect_r2=setting_effect_r2(self.mse("model"), reference),
+                **{f"{k}_r2": setting_effect_r2(self.mse(k), reference) for k in aware},
+            )
         return out
 
     def _numeric(self) -> list[str]:
@@ -181,7 +210,7 @@ class TestReport:
         _atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
         _atomic_write_text(self.folder / "rmse_over_time.csv", self.over_time_csv())
         self.plot_over_time(self.folder / "rmse_over_time.png", summary)
-        print("\nRollout RMSE [mm] over ply nodes, averaged over steps (model vs trivial baselines):")
+        print("\nRollout RMSE [mm] over ply nodes, averaged over steps (model vs baselines):")
         print(self.table())
         rigid = (
             f", rigid with punch (touch radius {summary['rigid_touch_radius']:g} mm) "
@@ -195,6 +224,16 @@ class TestReport:
             f"(static {summary['static_rmse']:.4f} mm{rigid}): "
             f"{summary['improvement_over_baseline']:.2f}x lower"
         )
+        if "setting_baseline" in summary:
+            print(
+                f"model {summary['rollout_rmse']:.4f} mm vs best setting-aware baseline "
+                f"{summary['setting_baseline_rmse']:.4f} mm ({summary['setting_baseline']}; the mean "
+                f"training trajectory {summary['mean_trajectory_rmse']:.4f} mm); explained variance of "
+                f"the setting effect R^2: model {summary['setting_effect_r2']:.2f}, "
+                + ", ".join(
+                    f"{k} {summary[f'{k}_r2']:.2f}" for k in SETTING_BASELINES if f"{k}_r2" in summary
+                )
+            )
         print(f"wrote {path}, {self.folder / 'rmse_over_time.png'} and more in {self.folder}")
         return summary
 

@@ -1,4 +1,4 @@
-"""Trivial rollout baselines a learned surrogate must beat.
+"""Trivial rollout baselines, which ignore the training data.
 
 Predictors for :func:`~torch_ampn.rollout.rollout`.
 

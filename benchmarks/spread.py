@@ -1,0 +1,114 @@
+"""Do the process settings matter? The setting spread against the chaos floor, per material.
+
+    python benchmarks/spread.py --seeds 8 --chaos 2 --out benchmarks/results/spread.json
+    python benchmarks/spread.py --variants default cfpa6 --seeds 4 --chaos 1   # a quick look
+
+For each material variant (overrides of the simulator's default settings, :data:`VARIANTS`):
+``--seeds`` trajectories of random gripper settings (seeds 0, 1, ...), simulated together; the
+setting spread (:func:`torch_ampn.sim.spread.setting_spread`: RMSE of each from the mean
+trajectory, and between pairs); the chaos floor (:func:`~torch_ampn.sim.spread.chaos_floor`:
+the first ``--chaos`` seeds again from a start moved by 1e-6 mm, eager); the substeps per
+saved step (the explicit solver's stability limit) and the seconds per trajectory, measured one
+variant after the other in this run. Prints a table; writes JSON (atomically) after every
+variant, and a rerun skips the variants already in it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from torch_ampn.data.io import atomic_write_text
+from torch_ampn.sim import StampFormingConfig, simulate_batch
+from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
+from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
+
+#: Material variants: overrides of StampFormingConfig's defaults (docs/simulator.md, "Material").
+VARIANTS: dict[str, dict[str, Any]] = {
+    "default": {},
+    # CF/PA6 UD tape at forming temperature: matrix-dominated stiffnesses of a molten PA6
+    # (transverse, in-plane shear, bending) orders of magnitude below the fibres'
+    "soft_matrix": {"transverse_stiffness": 2.0, "shear_stiffness": 0.5, "bending_stiffness": 10.0},
+    # ... and a light numerical damping in place of 20 1/s
+    "cfpa6": {"transverse_stiffness": 2.0, "shear_stiffness": 0.5, "bending_stiffness": 10.0, "damping": 2.0},
+}
+
+
+def substeps(cfg: StampFormingConfig) -> int:
+    """Sub-steps per saved step that the stability limit gives ``cfg``."""
+    model = LaminateModel(cfg, build_mesh(cfg), [sample_process(cfg, 0)])
+    return int(model.substeps)
+
+
+def measure(name: str, overrides: dict[str, Any], seeds: int, chaos: int, compile: bool) -> dict[str, Any]:
+    """Spread, chaos floor, sub-steps and cost of one variant."""
+    cfg = StampFormingConfig.from_dict(overrides)
+    cfg.validate()
+    start = time.perf_counter()
+    runs = simulate_batch(cfg, list(range(seeds)), compile=compile)
+    seconds = (time.perf_counter() - start) / seeds
+    floor = chaos_floor(runs[:chaos])
+    report = spread_report(setting_spread(runs), floor)
+    print(f"\n{name} {overrides}:\n{format_report(report)}", flush=True)
+    return {
+        "overrides": overrides,
+        "substeps": substeps(cfg),
+        "seconds_per_trajectory": seconds,
+        "compiled": compile,
+        **report,
+    }
+
+
+def table(results: dict[str, Any]) -> str:
+    """Markdown table of the variants measured."""
+    lines = [
+        "| variant | spread from mean [mm] | between pairs [mm] | chaos floor [mm] | spread / floor "
+        "| substeps | s / trajectory |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, r in results["variants"].items():
+        lines.append(
+            f"| {name} | {r['from_mean']['mean']:.3f} | {r['pairs']['mean']:.3f} | "
+            f"{r['chaos_floor']['mean']:.4f} | {r['spread_over_floor']:.1f} | {r['substeps']} | "
+            f"{r['seconds_per_trajectory']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--seeds", type=int, default=8, help="random settings per variant")
+    parser.add_argument("--chaos", type=int, default=2, help="of them simulated again, perturbed")
+    parser.add_argument("--no-compile", action="store_true", help="eager solver for the spread runs")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/spread.json"))
+    args = parser.parse_args(argv)
+    if args.seeds < 2 or not 1 <= args.chaos <= args.seeds:
+        parser.error("need --seeds >= 2 and 1 <= --chaos <= --seeds")
+    results: dict[str, Any] = {"variants": {}}
+    if args.out.exists():
+        results = json.loads(args.out.read_text())
+    for name in args.variants:
+        if name in results["variants"] and results["variants"][name]["trajectories"] == args.seeds:
+            print(f"{name}: measured before, skipped", flush=True)
+            continue
+        results["variants"][name] = measure(name, VARIANTS[name], args.seeds, args.chaos, not args.no_compile)
+        results.update(
+            date=datetime.date.today().isoformat(),
+            machine={"platform": platform.platform(), "threads": torch.get_num_threads()},
+        )
+        atomic_write_text(args.out, json.dumps(results, indent=1))
+    print("\n" + table(results))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,39 @@
+"""Baselines a learned surrogate must beat.
+
+* Trivial ones, which ignore the training data (:mod:`~torch_ampn.baselines.trivial`):
+  :func:`static_plies`, :class:`RigidWithPunch` (residual predictors for
+  :func:`~torch_ampn.rollout.rollout`).
+* Setting-aware ones, built from the training trajectories of one mesh
+  (:mod:`~torch_ampn.baselines.settings`): :class:`MeanTrajectory`, :class:`NearestSetting`,
+  :class:`PODRegression` (POD plus a Gaussian process, RBF or linear regression on the
+  process settings), and :func:`setting_effect_r2`.
+"""
+
+from torch_ampn.baselines.settings import (
+    MeanTrajectory,
+    NearestSetting,
+    PODRegression,
+    TrajectoryBaseline,
+    fit_setting_baselines,
+    process_settings,
+    rollout_mse,
+    setting_baselines,
+    setting_effect_r2,
+    setting_names,
+)
+from torch_ampn.baselines.trivial import RigidWithPunch, static_plies
+
+__all__ = [
+    "MeanTrajectory",
+    "NearestSetting",
+    "PODRegression",
+    "RigidWithPunch",
+    "TrajectoryBaseline",
+    "fit_setting_baselines",
+    "process_settings",
+    "rollout_mse",
+    "setting_baselines",
+    "setting_effect_r2",
+    "setting_names",
+    "static_plies",
+]

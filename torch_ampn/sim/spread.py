@@ -1,0 +1,138 @@
+"""How much the process settings move the part, against how chaotic the forming is.
+
+A surrogate can only learn what the settings change. Two numbers tell whether a dataset holds
+such an effect:
+
+* the **setting spread**: the rollout RMSE of each trajectory against the dataset's mean
+  trajectory (what ignoring the settings costs), and between pairs of trajectories;
+* the **chaos floor**: the rollout RMSE between a trajectory and the same settings simulated
+  again from initial ply positions moved by ``perturbation`` (1e-6 mm): no predictor of the
+  settings can be expected to do better than that.
+
+The RMSE is the models' metric (:func:`~torch_ampn.rollout.rollout_rmse` over ply nodes,
+averaged over the steps ``1 .. T``), in mm.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.sim.config import StampFormingConfig
+
+#: The aims of a dataset whose settings matter: spread at least this many times the chaos
+#: floor, and at least this many mm.
+SPREAD_OVER_FLOOR, SPREAD_MM = 5.0, 1.0
+
+
+def trajectory_rmse(a: Trajectory | torch.Tensor, b: Trajectory) -> float:
+    """Rollout RMSE (mm) of ``a`` (a trajectory or positions ``[T+1, N, 3]``) against ``b``, ply nodes."""
+    from torch_ampn.rollout import rollout_rmse
+
+    pos = a.pos if isinstance(a, Trajectory) else a
+    return float(rollout_rmse(pos, b.pos, b.ply_mask)[1:].mean())
+
+
+def _one_mesh(trajectories: Sequence[Trajectory]) -> None:
+    first = trajectories[0]
+    for t in trajectories[1:]:
+        if t.pos.shape != first.pos.shape or not torch.equal(t.component, first.component):
+            raise ValueError(
+                f"{t.meta.get('name', 'a trajectory')}: field 'pos' has another mesh than "
+                f"{first.meta.get('name', 'the first')}'s: the spread needs trajectories of one mesh"
+            )
+
+
+def setting_spread(trajectories: Sequence[Trajectory]) -> dict[str, Any]:
+    """Spread of ``trajectories`` (one mesh, at least 2) over their settings.
+
+    Returns:
+        ``from_mean``: per-trajectory RMSE against the mean trajectory (``mean``, ``std``,
+        ``values``); ``pairs``: RMSE between consecutive trajectories (0-1, 2-3, ...: pairs of
+        independent random settings), same keys.
+    """
+    trajectories = list(trajectories)
+    if len(trajectories) < 2:
+        raise ValueError(f"the setting spread needs at least 2 trajectories, got {len(trajectories)}")
+    _one_mesh(trajectories)
+    mean = torch.stack([t.pos.double() for t in trajectories]).mean(0)  # [T+1, N, 3]
+    from_mean = [trajectory_rmse(mean, t) for t in trajectories]
+    pairs = [trajectory_rmse(a, b) for a, b in zip(trajectories[0::2], trajectories[1::2], strict=False)]
+    return {"trajectories": len(trajectories), "from_mean": _summary(from_mean), "pairs": _summary(pairs)}
+
+
+def chaos_floor(
+    trajectories: Sequence[Trajectory],
+    perturbation: float = 1e-6,
+    compile: bool = False,
+    device: torch.device | str = "cpu",
+) -> dict[str, Any]:
+    """RMSE between each trajectory and its settings simulated again from a perturbed start.
+
+    The initial ply positions are moved by up to ``perturbation`` mm. Each trajectory is
+    simulated again from its ``meta`` (``config`` and ``seed``), one at a time, eagerly unless
+    ``compile`` (a compiled solver's last bits also depend on the batch; eager ones do not, so
+    eagerly the floor is the perturbation's effect alone).
+    """
+    from torch_ampn.sim.simulate import simulate_batch
+
+    values = []
+    for traj in trajectories:
+        if traj.meta.get("simulator") != "torch_ampn.sim" or "seed" not in traj.meta:
+            raise ValueError(
+                f"{traj.meta.get('name', 'a trajectory')}: field 'meta' does not name the embedded "
+                "simulator's config and seed: the chaos floor simulates it again"
+            )
+        cfg = StampFormingConfig.from_dict(traj.meta["config"])
+        again = simulate_batch(
+            cfg, [int(traj.meta["seed"])], compile=compile, device=device, perturbation=perturbation
+        )[0]
+        values.append(trajectory_rmse(again, traj))
+    return {"perturbation_mm": perturbation, **_summary(values)}
+
+
+def spread_report(spread: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:
+    """The spread against the floor: their ratio, and whether the aims are met.
+
+    The aims: :data:`SPREAD_OVER_FLOOR` and :data:`SPREAD_MM`.
+    """
+    s, f = spread["from_mean"]["mean"], floor["mean"]
+    ratio = s / f if f > 0 else math.inf
+    return {
+        **spread,
+        "chaos_floor": floor,
+        "spread_over_floor": ratio,
+        "aims": {"spread_over_floor": SPREAD_OVER_FLOOR, "spread_mm": SPREAD_MM},
+        "meets_aims": bool(ratio >= SPREAD_OVER_FLOOR and s >= SPREAD_MM),
+    }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """A few lines of text for :func:`spread_report`'s result."""
+    m, p, f = report["from_mean"], report["pairs"], report["chaos_floor"]
+    return "\n".join(
+        [
+            f"trajectories: {report['trajectories']}",
+            f"spread, RMSE from the mean trajectory: {m['mean']:.3f} +- {m['std']:.3f} mm",
+            f"spread, RMSE between pairs of settings: {p['mean']:.3f} +- {p['std']:.3f} mm "
+            f"({p['count']} pairs)",
+            f"chaos floor, same settings from a start moved by {f['perturbation_mm']:g} mm: "
+            f"{f['mean']:.4f} +- {f['std']:.4f} mm ({f['count']} trajectories)",
+            f"spread / floor: {report['spread_over_floor']:.1f} (aims: >= {SPREAD_OVER_FLOOR:g}, "
+            f"spread >= {SPREAD_MM:g} mm: {'met' if report['meets_aims'] else 'not met'})",
+        ]
+    )
+
+
+def _summary(values: list[float]) -> dict[str, Any]:
+    return {
+        "mean": statistics.fmean(values),
+        "std": statistics.pstdev(values) if len(values) > 1 else 0.0,
+        "count": len(values),
+        "values": values,
+    }
