@@ -337,8 +337,17 @@ def run_cell(
         "rmse_per_trajectory": {r["trajectory"]: float(r["model"]) for r in rows},
         "rollout_seconds": summary["rollout_seconds"],
         "baselines": {
-            k: float(v) for k, v in summary.items() if k in ("static_rmse", "rigid_rmse", "baseline_rmse")
+            **{
+                k: float(v) for k, v in summary.items() if k in ("static_rmse", "rigid_rmse", "baseline_rmse")
+            },
+            **{  # the setting-aware ones, with their R^2 of the setting effect
+                f"{k}_rmse": sum(float(r[k]) for r in rows) / len(rows)
+                for k in SETTING_BASELINES
+                if k in rows[0]
+            },
+            **{f"{k}_r2": float(summary[f"{k}_r2"]) for k in SETTING_BASELINES if f"{k}_r2" in summary},
         },
+        "setting_effect_r2": summary.get("setting_effect_r2"),
         "rmse_over_time": {k: [float(r[k]) for r in over_time] for k in over_time[0] if k != "step"},
         **measured,
         "simulator": simulator,
@@ -454,10 +463,20 @@ def layer_applications(model: dict[str, Any], num_levels: int) -> int:
     )
 
 
+#: The setting-aware baselines of ``torch-ampn test`` (torch_ampn.baselines), with their labels.
+SETTING_BASELINES = {
+    "mean_trajectory": "the mean training trajectory, whatever the settings",
+    "nearest_setting": "the training trajectory with the nearest settings",
+    "linear_settings": "a linear regression on the settings",
+    "pod_gp": "POD + Gaussian process on the settings",
+}
+
+
 def table(
     cells: dict[tuple[str, int], dict], variants: list[str], seeds: list[int], base: dict | None = None
 ) -> list[dict[str, Any]]:
-    """One row per variant (mean and std over the seeds present) and the trivial baselines."""
+    """One row per variant (mean and std over the seeds present), the simulator's repeatability,
+    the trivial and the setting-aware baselines (from the test of a cell: the same test set)."""
     rows = []
     for variant in variants:
         done = [cells[(variant, s)] for s in seeds if (variant, s) in cells]
@@ -476,6 +495,9 @@ def table(
                 "contact_edges_all_levels": [c["contact_edges_per_step"]["all_levels"] for c in done],
             }.items():
                 row[key], row[f"{key}_std"] = _mean_std(values)
+            r2 = [c["setting_effect_r2"] for c in done if c.get("setting_effect_r2") is not None]
+            if r2:
+                row["r2"], row["r2_std"] = _mean_std(r2)
             row.update(layers=done[0]["layers"], parameters=done[0]["parameters"], steps=done[0]["steps"])
             row["layer_applications"] = layer_applications(
                 (base or {}).get("model", {}), done[0]["num_levels"]
@@ -500,21 +522,34 @@ def table(
                 rows.append(
                     {"variant": key.removesuffix("_rmse"), "label": label, "rmse": any_cell["baselines"][key]}
                 )
+        for key, label in SETTING_BASELINES.items():
+            if f"{key}_rmse" in any_cell["baselines"]:
+                found = any_cell["baselines"]
+                rows.append(
+                    {
+                        "variant": key,
+                        "label": label,
+                        "rmse": found[f"{key}_rmse"],
+                        "r2": found.get(f"{key}_r2"),
+                    }
+                )
     return rows
 
 
 def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
     head = (
         "| model | RMSE [mm] | rollout [s] | speed-up vs simulator | contact edges / step (fine; all levels) "
-        "| layers (applied per call) | seeds |\n|---|---:|---:|---:|---:|---:|---|"
+        "| layers (applied per call) | seeds | R² of the setting effect |\n"
+        "|---|---:|---:|---:|---:|---:|---|---:|"
     )
     lines = [head]
     for r in rows:
-        if "seeds" not in r:  # a trivial baseline
+        r2 = f"{r['r2']:.2f}" if r.get("r2") is not None else ""
+        if "seeds" not in r:  # a baseline
             kind = "reference" if r["variant"] == "simulator_rerun" else "baseline"
-            lines.append(f"| {r['label']} ({kind}) | {r['rmse']:.2f} | | | | | |")
+            lines.append(f"| {r['label']} ({kind}) | {r['rmse']:.2f} | | | | | | {r2} |")
         elif not r["seeds"]:
-            lines.append(f"| {r['label']} | missing | | | | | 0 of {len(seeds)} |")
+            lines.append(f"| {r['label']} | missing | | | | | 0 of {len(seeds)} | |")
         else:
             missing = f" (missing {', '.join(map(str, r['missing_seeds']))})" if r["missing_seeds"] else ""
             mark = "" if r.get("timed") else "*"  # * : the cell's own test time (machine shared)
@@ -523,7 +558,8 @@ def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
                 f"| {r['rollout_seconds']:.2f}{mark} "
                 f"| {r['speedup']:.1f}x{mark} "
                 f"| {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
-                f"| {r['layers']} ({r['layer_applications']}) | {len(r['seeds'])}{missing} |"
+                f"| {r['layers']} ({r['layer_applications']}) | {len(r['seeds'])}{missing} "
+                + (f"| {r['r2']:.2f} ± {r['r2_std']:.2f} |" if "r2" in r else "| |")
             )
     if any("seeds" in r and r["seeds"] and not r.get("timed") for r in rows):
         lines.append("")

@@ -48,13 +48,18 @@ def substeps(cfg: StampFormingConfig) -> int:
 
 
 def measure(name: str, overrides: dict[str, Any], seeds: int, chaos: int, compile: bool) -> dict[str, Any]:
-    """Spread, chaos floor, sub-steps and cost of one variant."""
+    """Spread, chaos floor, sub-steps and cost of one variant (``diverged`` where the solver blew up)."""
     cfg = StampFormingConfig.from_dict(overrides)
     cfg.validate()
     start = time.perf_counter()
-    runs = simulate_batch(cfg, list(range(seeds)), compile=compile)
-    seconds = (time.perf_counter() - start) / seeds
-    floor = chaos_floor(runs[:chaos])
+    try:
+        runs = simulate_batch(cfg, list(range(seeds)), compile=compile)
+        seconds = (time.perf_counter() - start) / seeds
+        floor = chaos_floor(runs[:chaos])
+    except FloatingPointError as err:
+        print(f"\n{name} {overrides}: {err}", flush=True)
+        diverged = {"diverged": str(err), "trajectories": seeds}
+        return {"overrides": overrides, "substeps": substeps(cfg), **diverged}
     report = spread_report(setting_spread(runs), floor)
     print(f"\n{name} {overrides}:\n{format_report(report)}", flush=True)
     return {
@@ -74,6 +79,9 @@ def table(results: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for name, r in results["variants"].items():
+        if "diverged" in r:
+            lines.append(f"| {name} | {r['diverged']} | | | | {r['substeps']} | |")
+            continue
         lines.append(
             f"| {name} | {r['from_mean']['mean']:.3f} | {r['pairs']['mean']:.3f} | "
             f"{r['chaos_floor']['mean']:.4f} | {r['spread_over_floor']:.1f} | {r['substeps']} | "
@@ -85,6 +93,10 @@ def table(results: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument(
+        "--variant", action="append", default=[], metavar="NAME=JSON",
+        help='another variant, e.g. stiffer=\'{"shear_stiffness": 5}\' (repeatable)',
+    )  # fmt: skip
     parser.add_argument("--seeds", type=int, default=8, help="random settings per variant")
     parser.add_argument("--chaos", type=int, default=2, help="of them simulated again, perturbed")
     parser.add_argument("--no-compile", action="store_true", help="eager solver for the spread runs")
@@ -92,14 +104,22 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.seeds < 2 or not 1 <= args.chaos <= args.seeds:
         parser.error("need --seeds >= 2 and 1 <= --chaos <= --seeds")
+    variants = {name: VARIANTS[name] for name in args.variants}
+    for text in args.variant:
+        name, _, spec = text.partition("=")
+        try:
+            variants[name] = dict(json.loads(spec))
+        except (ValueError, TypeError) as err:
+            parser.error(f"--variant {text}: not NAME=JSON with a mapping ({err})")
     results: dict[str, Any] = {"variants": {}}
     if args.out.exists():
         results = json.loads(args.out.read_text())
-    for name in args.variants:
-        if name in results["variants"] and results["variants"][name]["trajectories"] == args.seeds:
+    for name, overrides in variants.items():
+        done = results["variants"].get(name)
+        if done and done["trajectories"] == args.seeds and done["overrides"] == overrides:
             print(f"{name}: measured before, skipped", flush=True)
             continue
-        results["variants"][name] = measure(name, VARIANTS[name], args.seeds, args.chaos, not args.no_compile)
+        results["variants"][name] = measure(name, overrides, args.seeds, args.chaos, not args.no_compile)
         results.update(
             date=datetime.date.today().isoformat(),
             machine={"platform": platform.platform(), "threads": torch.get_num_threads()},

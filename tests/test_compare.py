@@ -1,5 +1,6 @@
 """benchmarks/compare.py end to end on a tiny budget: cells, the report's rows, resuming, a killed cell."""
 
+import csv
 import importlib.util
 import json
 import os
@@ -90,11 +91,23 @@ def test_the_report_has_a_row_per_variant_and_the_figures(two_cells):
     results = root / "results"
     # one row per variant (mean over the seeds present), the references and baselines
     table = json.loads((results / "table.json").read_text())["rows"]
-    assert [r["variant"] for r in table] == ["ampn", "robin5", "simulator_rerun", "static", "rigid"]
+    aware = ["mean_trajectory", "nearest_setting", "linear_settings", "pod_gp"]
+    assert [r["variant"] for r in table] == ["ampn", "robin5", "simulator_rerun", "static", "rigid", *aware]
     assert table[0]["rmse"] == pytest.approx(cells["ampn"]["rmse"]) and table[0]["seeds"] == [0]
     assert table[2]["rmse"] < table[3]["rmse"]  # the simulator repeats itself better than "no motion"
+    # the setting-aware rows: the means of a cell's test table, with their R^2 from its summary
+    test_dir = root / "work" / "ampn_seed0" / "test"
+    summary = json.loads((test_dir / "test_summary.json").read_text())
+    rows = list(csv.DictReader(open(test_dir / "test_rmse.csv")))
+    by_variant = {r["variant"]: r for r in table}
+    for name in aware:
+        assert by_variant[name]["rmse"] == pytest.approx(sum(float(r[name]) for r in rows) / len(rows))
+        assert by_variant[name]["r2"] == pytest.approx(summary[f"{name}_r2"])
+    assert by_variant["mean_trajectory"]["r2"] == 0.0
+    assert table[0]["r2"] == pytest.approx(summary["setting_effect_r2"])
     markdown = (results / "table.md").read_text()
     assert "ROBIN, K = 5" in markdown and "missing" not in markdown
+    assert "| POD + Gaussian process on the settings (baseline) |" in markdown
     for name in ("compare_rmse_over_time.png", "compare_fig2.png", "compare_fig3.png"):
         assert (results / "figures" / name).is_file(), name
 
