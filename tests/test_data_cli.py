@@ -54,9 +54,15 @@ def test_generate_command_calls_generate_dataset(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(data_cli, "generate_dataset", fake)
     argv = ["generate", "--out", str(tmp_path), "--num-train", "1", "--num-val", "0", "--num-test", "0"]
     assert data_cli.main([*argv, "--workers", "1", "--batch", "2", "--no-compile"]) == 0
-    options = {"compile": False, "device": "cpu", "family": None}
+    options = {"compile": False, "device": "cpu", "family": None, "config": None}
     assert calls == [(tmp_path, (1, 0, 0, "coarse", 1, 2), options)]
     assert f"1 trajectories in {tmp_path}" in capsys.readouterr().out
+    # --simulator: inline JSON or a file override the resolution's settings
+    assert data_cli.main([*argv, "--simulator", '{"shear_stiffness": 2.0}']) == 0
+    assert calls[-1][2]["config"] == StampFormingConfig(shear_stiffness=2.0)
+    (tmp_path / "soft.yaml").write_text("shear_stiffness: 2.0\ndamping: 5.0\n")
+    assert data_cli.main([*argv, "--resolution", "paper", "--simulator", str(tmp_path / "soft.yaml")]) == 0
+    assert calls[-1][2]["config"] == StampFormingConfig.paper(shear_stiffness=2.0, damping=5.0)
 
     def refuse(*args, **kwargs):
         raise ValueError(f"{tmp_path}/dataset.json: the folder holds a dataset made with other settings")
@@ -121,6 +127,16 @@ def test_check_summarises_a_dataset_and_names_its_problems(tmp_path, capsys):
     assert "2 problem(s)" in captured.out
     assert data_cli.main(["check", str(tmp_path / "empty")]) == 1
     assert "no trajectory files" in capsys.readouterr().err
+
+
+def test_generate_refuses_bad_simulator_settings_in_one_line(tmp_path, capsys):
+    (tmp_path / "bad.yaml").write_text("shear_stifness: 2.0\n")
+    for spec, where in [("{not json", "--simulator {not json"), (str(tmp_path / "bad.yaml"), "bad.yaml")]:
+        assert data_cli.main(["generate", "--out", str(tmp_path / "ds"), "--simulator", spec]) == 2
+        err = capsys.readouterr().err.strip()
+        assert where in err and "not simulator settings" in err and "\n" not in err, err
+    assert "unknown setting(s) 'shear_stifness'" in err
+    assert not (tmp_path / "ds").exists()
 
 
 def test_generate_refuses_a_device_it_cannot_use_in_one_line(tmp_path, capsys):

@@ -148,6 +148,9 @@ def test_the_spread_of_two_trajectories_by_hand():
     spread = setting_spread([A, B])
     assert spread["from_mean"]["mean"] == pytest.approx(2 / 3**0.5, rel=1e-6)
     assert spread["pairs"]["mean"] == pytest.approx(4 / 3**0.5, rel=1e-6) and spread["pairs"]["count"] == 1
+    # B's plies move 3 mm per step, 9 mm in the 3 steps
+    assert spread["max_step_mm"] == pytest.approx(3.0) and spread["max_displacement_mm"] == pytest.approx(9.0)
+    assert spread["tool_travel_mm"] == 0.0  # the template's die stays put
 
 
 def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
@@ -174,4 +177,5 @@ def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
     report = json.loads((tmp_path / "spread.json").read_text())
     assert report["chaos_floor"]["mean"] == pytest.approx(floor["mean"])
     assert report["spread_over_floor"] == pytest.approx(report["from_mean"]["mean"] / floor["mean"])
+    assert report["tool_travel_mm"] == pytest.approx(60.0, abs=1e-3) and not report["blown_up"]
     assert "spread / floor" in capsys.readouterr().out

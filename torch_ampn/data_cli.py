@@ -4,6 +4,7 @@
     torch-ampn-data generate --out data/paper --resolution paper --num-train 684 --shard 3/16  # job 3 of 16
     torch-ampn-data generate --out data/paper --resolution paper --device cuda --batch 32    # on a GPU
     torch-ampn-data generate --out data/family --family default    # every trajectory its own part
+    torch-ampn-data generate --out data/soft --simulator '{"shear_stiffness": 2.0}'   # other settings
     torch-ampn-data check data/default
     torch-ampn-data spread data/default --split train --chaos 2   # do the settings matter?
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
@@ -25,6 +26,7 @@ from pathlib import Path
 import torch
 
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
+from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import generate_dataset
 from torch_ampn.sim.family import PartFamily
 
@@ -97,6 +99,30 @@ def _family(spec: str | None) -> PartFamily | None:
         raise ValueError(f"{path}: not a family of parts ({' '.join(str(err).split())})") from err
 
 
+def _simulator(spec: str | None, resolution: str) -> StampFormingConfig | None:
+    """``None``, or the resolution's settings overridden by a YAML/JSON file or inline JSON."""
+    if spec is None:
+        return None
+    base = StampFormingConfig.paper() if resolution == "paper" else StampFormingConfig()
+    path = Path(spec)
+    where = f"--simulator {spec}"
+    try:
+        if path.is_file():
+            where = str(path)
+            import yaml  # PyYAML comes with the train extra; JSON is YAML
+
+            values = yaml.safe_load(path.read_text())
+        else:
+            values = json.loads(spec)
+        config = StampFormingConfig.from_dict(values or {}, base=base)
+        config.validate()
+    except ImportError as err:
+        raise ValueError(f"{where}: reading a file needs PyYAML (pip install pyyaml); or give JSON") from err
+    except Exception as err:  # noqa: BLE001 - a parse or settings error: one line naming the source
+        raise ValueError(f"{where}: not simulator settings ({' '.join(str(err).split())})") from err
+    return config
+
+
 def _device(name: str) -> str:
     """``name`` if torch can run there, else ``ValueError`` with the reason."""
     try:
@@ -130,6 +156,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         "ranges of a YAML/JSON file of PartFamily settings, or 'default' (torch_ampn.sim.family)",
     )
     g.add_argument(
+        "--simulator",
+        default=None,
+        metavar="FILE|JSON",
+        help="simulator settings that override the resolution's (StampFormingConfig fields), as a "
+        "YAML/JSON file or inline JSON, e.g. '{\"shear_stiffness\": 2.0}'",
+    )
+    g.add_argument(
         "--shard", type=_shard, default=None, metavar="I/N", help="make only part I of N (0 <= I < N)"
     )
     k = sub.add_parser("check", help="load every trajectory of a dataset folder and summarise it")
@@ -160,6 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 compile=not args.no_compile,
                 device=_device(args.device),
                 family=_family(args.family),
+                config=_simulator(args.simulator, args.resolution),
                 **({"shard": args.shard} if args.shard else {}),
             )
             print(f"{len(paths)} trajectories in {args.out}")

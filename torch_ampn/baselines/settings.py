@@ -112,7 +112,7 @@ class TrajectoryBaseline:
                 f"settings need {expected} columns ({setting_names(expected // 2)}), got {x.size(1)}"
             )
         out = self._predict(x.numpy())  # [B, D]
-        return torch.from_numpy(np.ascontiguousarray(out)).float().reshape(x.size(0), *self._shape)
+        return torch.from_numpy(np.array(out, dtype=np.float64)).float().reshape(x.size(0), *self._shape)
 
     def predict(self, traj: Trajectory) -> Tensor:
         """The predicted trajectory for ``traj``'s settings, ``[T+1, N, 3]``.

@@ -54,7 +54,10 @@ def setting_spread(trajectories: Sequence[Trajectory]) -> dict[str, Any]:
     Returns:
         ``from_mean``: per-trajectory RMSE against the mean trajectory (``mean``, ``std``,
         ``values``); ``pairs``: RMSE between consecutive trajectories (0-1, 2-3, ...: pairs of
-        independent random settings), same keys.
+        independent random settings), same keys; ``max_step_mm`` and ``max_displacement_mm``:
+        the largest motion of any ply node in one saved step and from its start (sanity
+        checks: a spread made by a solver blowing up is no setting effect; the punch moves
+        ``stroke`` in all, ``stroke / num_steps`` per step).
     """
     trajectories = list(trajectories)
     if len(trajectories) < 2:
@@ -63,7 +66,19 @@ def setting_spread(trajectories: Sequence[Trajectory]) -> dict[str, Any]:
     mean = torch.stack([t.pos.double() for t in trajectories]).mean(0)  # [T+1, N, 3]
     from_mean = [trajectory_rmse(mean, t) for t in trajectories]
     pairs = [trajectory_rmse(a, b) for a, b in zip(trajectories[0::2], trajectories[1::2], strict=False)]
-    return {"trajectories": len(trajectories), "from_mean": _summary(from_mean), "pairs": _summary(pairs)}
+    max_step = max(float((t.pos[1:] - t.pos[:-1])[:, t.ply_mask].norm(dim=-1).max()) for t in trajectories)
+    return {
+        "trajectories": len(trajectories),
+        "from_mean": _summary(from_mean),
+        "pairs": _summary(pairs),
+        "max_step_mm": max_step,
+        "max_displacement_mm": max(
+            float((t.pos - t.pos[0])[:, t.ply_mask].norm(dim=-1).max()) for t in trajectories
+        ),
+        "tool_travel_mm": max(
+            float((t.pos - t.pos[0])[:, ~t.ply_mask].norm(dim=-1).max()) for t in trajectories
+        ),
+    }
 
 
 def chaos_floor(
@@ -99,16 +114,21 @@ def chaos_floor(
 def spread_report(spread: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:
     """The spread against the floor: their ratio, and whether the aims are met.
 
-    The aims: :data:`SPREAD_OVER_FLOOR` and :data:`SPREAD_MM`.
+    The aims: :data:`SPREAD_OVER_FLOOR` and :data:`SPREAD_MM`, and no blow-up (``blown_up``: a
+    ply node farther from its start than twice the farthest tool node's travel).
     """
     s, f = spread["from_mean"]["mean"], floor["mean"]
     ratio = s / f if f > 0 else math.inf
+    # a ply node farther from its start than twice the tools' travel: the solver blew up
+    travel = spread["tool_travel_mm"]
+    blown_up = travel > 0 and spread["max_displacement_mm"] > 2 * travel
     return {
         **spread,
         "chaos_floor": floor,
         "spread_over_floor": ratio,
+        "blown_up": bool(blown_up),
         "aims": {"spread_over_floor": SPREAD_OVER_FLOOR, "spread_mm": SPREAD_MM},
-        "meets_aims": bool(ratio >= SPREAD_OVER_FLOOR and s >= SPREAD_MM),
+        "meets_aims": bool(ratio >= SPREAD_OVER_FLOOR and s >= SPREAD_MM and not blown_up),
     }
 
 
@@ -123,6 +143,10 @@ def format_report(report: dict[str, Any]) -> str:
             f"({p['count']} pairs)",
             f"chaos floor, same settings from a start moved by {f['perturbation_mm']:g} mm: "
             f"{f['mean']:.4f} +- {f['std']:.4f} mm ({f['count']} trajectories)",
+            f"largest motion of a ply node: {report['max_step_mm']:.1f} mm in one saved step, "
+            f"{report['max_displacement_mm']:.1f} mm from its start (the tools travel "
+            f"{report['tool_travel_mm']:.1f} mm)"
+            + (": BLOWN UP, the spread is no setting effect" if report["blown_up"] else ""),
             f"spread / floor: {report['spread_over_floor']:.1f} (aims: >= {SPREAD_OVER_FLOOR:g}, "
             f"spread >= {SPREAD_MM:g} mm: {'met' if report['meets_aims'] else 'not met'})",
         ]
