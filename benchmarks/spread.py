@@ -44,6 +44,21 @@ VARIANTS: dict[str, dict[str, Any]] = {
         "bending_stiffness": 50.0,
         "damping": 5.0,
     },
+    # grippers that clamp the nodes within 15 mm (about 1.5 coarse cells) instead of one node
+    "default_clamp15": {"gripper_clamp_radius": 15.0},
+    "matrix20_clamp15": {
+        "transverse_stiffness": 20.0,
+        "shear_stiffness": 5.0,
+        "bending_stiffness": 100.0,
+        "gripper_clamp_radius": 15.0,
+    },
+    "matrix10_clamp15": {
+        "transverse_stiffness": 10.0,
+        "shear_stiffness": 2.0,
+        "bending_stiffness": 50.0,
+        "damping": 5.0,
+        "gripper_clamp_radius": 15.0,
+    },
     # inside the tape's range for transverse and shear
     "matrix2": {
         "transverse_stiffness": 2.0,

@@ -227,3 +227,53 @@ def test_config_from_dict_overrides_a_base_and_refuses_unknown_keys():
         StampFormingConfig.from_dict({"stroek": 1.0, "ply_cells": 4, "ply_cell": 4})
     with pytest.raises(TypeError, match="must be a mapping"):
         StampFormingConfig.from_dict([("ply_cells", 4)])
+
+
+@pytest.mark.parametrize("cfg", [CFG, StampFormingConfig(gripper_clamp_radius=15.0)])
+def test_settings_added_later_are_written_only_away_from_their_default(cfg):
+    from torch_ampn.sim.config import ADDED_LATER
+
+    values = cfg.to_dict()
+    assert ("gripper_clamp_radius" in values) == (
+        cfg.gripper_clamp_radius != ADDED_LATER["gripper_clamp_radius"]
+    )
+    assert StampFormingConfig.from_dict(values) == cfg  # the default fills the missing key
+
+
+def test_a_clamp_shares_the_gripper_force_over_the_nodes_within_its_radius():
+    """``gripper_clamp_radius = 0``: one node per ply pulls force / P towards the anchor (the
+    needle); a radius r: every node of that ply within r of it, the ply's share split equally,
+    each towards the anchor shifted by its offset (built by brute force from the layout)."""
+    from torch_ampn.sim.simulate import _gripper_layout
+
+    mesh, process = build_mesh(CFG), sample_process(CFG, 0)
+    needle = LaminateModel(CFG, mesh, [process])
+    clamp = LaminateModel(
+        StampFormingConfig.from_dict({"gripper_clamp_radius": 20.0}, base=CFG), mesh, [process]
+    )
+    per_ply, plies, x0 = needle.per_ply, CFG.num_plies, mesh.pos[: needle.n]
+    nodes, anchors = _gripper_layout(CFG, x0, per_ply, process[0])
+    force = process[1]
+    assert torch.equal(needle.gripper_index, nodes.reshape(-1))
+    assert torch.equal(needle.gripper_anchor, anchors.repeat_interleave(plies, 0))
+    assert torch.equal(needle.gripper_pull, force.repeat_interleave(plies) / plies)
+    index, anchor, pull = [], [], []
+    for g in range(CFG.num_grippers):
+        for centre in nodes[g].tolist():
+            first = centre // per_ply * per_ply
+            near = [
+                i
+                for i in range(first, first + per_ply)
+                if i != centre and (x0[i] - x0[centre]).norm() <= 20.0
+            ]
+            assert near  # more than the needle's node
+            for i in [centre, *near]:
+                index.append(i)
+                anchor.append(anchors[g] + x0[i] - x0[centre])
+                pull.append(float(force[g]) / (plies * (1 + len(near))))
+    assert clamp.gripper_index.tolist() == index
+    torch.testing.assert_close(clamp.gripper_anchor, torch.stack(anchor), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        clamp.gripper_pull, torch.tensor(pull, dtype=torch.float64), rtol=1e-15, atol=0
+    )
+    assert clamp.gripper_pull.sum() == pytest.approx(float(force.sum()))  # all of the force, shared

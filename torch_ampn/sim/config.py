@@ -6,6 +6,10 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+#: Settings added after datasets were first written, with the default that reproduces the
+#: physics before them (omitted from :meth:`StampFormingConfig.to_dict` at that value).
+ADDED_LATER: dict[str, Any] = {"gripper_clamp_radius": 0.0}
+
 
 @dataclass
 class StampFormingConfig:
@@ -19,6 +23,11 @@ class StampFormingConfig:
     e2 = 0. Plies cover ``[0, ply_size[0]] x [0, ply_size[1]]``, stacked ``ply_thickness``
     apart starting at e3 = 0, on a fixed die. The punch moves ``stroke`` mm down along e3
     over ``duration`` s; its dome apex starts ``punch_clearance`` mm above the stack.
+
+    Grippers: each pulls its anchor-ward force ``gripper_force_range`` through all plies: on
+    the node nearest its point in every ply (``gripper_clamp_radius = 0``: a needle), or, with
+    a clamp radius (mm), on every node of each ply within that distance of it, the force shared
+    equally and each node pulled towards the anchor shifted by its offset (a rigid clamp).
 
     Dynamics: explicit (semi-implicit Euler) time integration with lumped nodal masses
     ``areal_mass`` (t/mm^2, i.e. N s^2/mm^3; scaled up from the physical ~1e-9, as explicit
@@ -54,6 +63,7 @@ class StampFormingConfig:
     gripper_force_range: tuple[float, float] = (0.0, 100.0)
     gripper_position_range: tuple[float, float] = (0.15, 0.85)
     gripper_anchor_distance: float = 80.0
+    gripper_clamp_radius: float = 0.0
 
     # material and contact (effective values; the mass is scaled up, as in explicit FEM,
     # so that the explicit time step stays affordable)
@@ -109,8 +119,17 @@ class StampFormingConfig:
         return len(self.ply_angles)
 
     def to_dict(self) -> dict:
-        """Plain ``dict`` (stored in the trajectory's ``meta``)."""
-        return asdict(self)
+        """Plain ``dict`` (stored in the trajectory's ``meta``).
+
+        Settings added after datasets were first written (:data:`ADDED_LATER`) appear only
+        when they differ from their default, so that the settings of older files and of new
+        ones with the same physics are the same dict.
+        """
+        values = asdict(self)
+        for name, default in ADDED_LATER.items():
+            if values[name] == default:
+                del values[name]
+        return values
 
     def validate(self) -> None:
         """Raise ``ValueError`` for settings the simulator cannot run."""
@@ -132,6 +151,7 @@ class StampFormingConfig:
             (self.duration > 0 and self.stroke >= 0, "duration must be positive and stroke non-negative"),
             (0 < self.dome_flat_top < 1, "dome_flat_top must be in (0, 1)"),
             (self.damping >= 0, "damping must be non-negative"),
+            (self.gripper_clamp_radius >= 0, "gripper_clamp_radius must be non-negative"),
         ]
         for ok, msg in checks:
             if not ok:

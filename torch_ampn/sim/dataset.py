@@ -82,7 +82,7 @@ def _run_in_processes(jobs: list[tuple], workers: int, bar: tqdm | None) -> None
     except BrokenProcessPool as err:
         raise RuntimeError(
             "generate_dataset: a worker process died (killed, out of memory, or the calling script "
-            "has no `if __name__ == \"__main__\":` guard around the generation; spawned workers "
+            'has no `if __name__ == "__main__":` guard around the generation; spawned workers '
             "re-import it); the files written so far are kept, rerun to complete them, or pass workers=1"
         ) from err
 

@@ -80,6 +80,16 @@ def _gripper_layout(
     return torch.stack(nodes), torch.stack(anchors)
 
 
+def _clamp_patch(x0: Tensor, per_ply: int, centre: int, radius: float) -> Tensor:
+    """Nodes of ``centre``'s ply within ``radius`` of it in the flat start ``x0`` (``centre`` first)."""
+    if radius <= 0:
+        return torch.tensor([centre])
+    first = centre // per_ply * per_ply
+    ply = x0[first : first + per_ply]
+    near = torch.nonzero((ply - x0[centre]).norm(dim=1) <= radius).squeeze(1) + first
+    return torch.cat([torch.tensor([centre]), near[near != centre]])
+
+
 class LaminateModel:
     """Ply mechanics of ``B`` process settings as one disjoint system of ``B * n`` ply nodes.
 
@@ -135,19 +145,24 @@ class LaminateModel:
         self.die_friction = (self.layer == 0).double()
         self.punch_friction = (self.layer == cfg.num_plies - 1).double()
 
-        # Grippers: a needle through all plies pulling towards a space-fixed anchor.
+        # Grippers: a needle through all plies (or a clamp: the nodes of each ply within
+        # gripper_clamp_radius) pulling towards a space-fixed anchor.
         layouts = [_gripper_layout(cfg, x0, self.per_ply, where) for where, _ in processes]
         self.gripper_nodes = [nodes for nodes, _ in layouts]  # per copy, local indices [G, P]
         self.anchors = [a for _, a in layouts]
-        self.gripper_index = torch.cat(
-            [nodes.reshape(-1) + o for (nodes, _), o in zip(layouts, offsets, strict=True)]
-        )
-        self.gripper_anchor = torch.cat(
-            [a.repeat_interleave(cfg.num_plies, 0) for a in self.anchors]
-        )  # [BGP, 3]
-        self.gripper_pull = torch.cat(
-            [f.repeat_interleave(cfg.num_plies) / cfg.num_plies for _, f in processes]
-        )
+        index, anchor, pull = [], [], []
+        for (nodes, anchors), (_, force), o in zip(layouts, processes, offsets, strict=True):
+            for g in range(nodes.size(0)):
+                for centre in nodes[g].tolist():  # one gripped node per ply
+                    patch = _clamp_patch(x0, self.per_ply, centre, cfg.gripper_clamp_radius)
+                    index.append(patch + o)
+                    anchor.append(anchors[g] + (x0[patch] - x0[centre]))  # a rigid clamp
+                    share = float(force[g]) / (cfg.num_plies * patch.numel())  # N per clamped node
+                    pull.append(torch.full((patch.numel(),), share, dtype=x0.dtype))
+        empty = torch.empty(0, dtype=torch.long)
+        self.gripper_index = torch.cat(index) if index else empty  # [K]: every clamped node
+        self.gripper_anchor = torch.cat(anchor) if anchor else torch.empty(0, 3, dtype=x0.dtype)  # [K, 3]
+        self.gripper_pull = torch.cat(pull) if pull else torch.empty(0, dtype=x0.dtype)  # [K]
 
         # Ply-on-ply contact: every node of ply k >= 1 against a nearby node of ply k - 1.
         self.pairs_upper = torch.nonzero(self.layer > 0).squeeze(1)
@@ -255,7 +270,7 @@ class LaminateModel:
                 pair_cap,
             )
         if cfg.num_grippers:
-            d = self.gripper_anchor - x[self.gripper_index]  # [BGP, 3]
+            d = self.gripper_anchor - x[self.gripper_index]  # [K, 3]
             pull = self.gripper_pull[:, None] * d / d.norm(dim=1, keepdim=True).clamp_min(1e-9)
             f = f.index_add(0, self.gripper_index, pull)
         return f

@@ -64,6 +64,8 @@ class AMPNDataModule(L.LightningDataModule):
             (e.g. ``{"ply_cells": 24}``), applied on top of ``resolution``.
         generate: Simulate missing trajectories in ``prepare_data``.
         generate_workers: Processes for generating (default: CPU cores).
+        generate_compile: Compile the simulator's step when generating (pays off from a few
+            coarse trajectories on; a handful of tiny ones are quicker eager).
         batch_size: Training windows per batch (paper: 1).
         num_workers: Dataloader worker processes for training windows.
         max_levels: Hierarchy levels (linked to the model's ``num_levels`` by the CLI).
@@ -105,6 +107,7 @@ class AMPNDataModule(L.LightningDataModule):
         simulator: dict[str, Any] | None = None,
         generate: bool = True,
         generate_workers: int | None = None,
+        generate_compile: bool = True,
         batch_size: int = 1,
         num_workers: int = 0,
         max_levels: int = 4,
@@ -149,6 +152,7 @@ class AMPNDataModule(L.LightningDataModule):
                 hp.num_test,
                 resolution=hp.resolution,
                 workers=hp.generate_workers,
+                compile=hp.get("generate_compile", True),
                 config=self._generator_config(),
                 family=self._family(),
             )
