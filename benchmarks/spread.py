@@ -44,6 +44,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
         "bending_stiffness": 50.0,
         "damping": 5.0,
     },
+    # matrix-dominated with the default damping (20 1/s), which holds the plies before contact
+    "matrix10_d20": {"transverse_stiffness": 10.0, "shear_stiffness": 2.0, "bending_stiffness": 50.0},
+    "matrix5_d20": {"transverse_stiffness": 5.0, "shear_stiffness": 1.0, "bending_stiffness": 25.0},
     # grippers that clamp the nodes within 15 mm (about 1.5 coarse cells) instead of one node
     "default_clamp15": {"gripper_clamp_radius": 15.0},
     "matrix20_clamp15": {
