@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torch_ampn.baselines.settings import SETTING_BASELINE_NAMES
+from torch_ampn.data.io import atomic_write_text
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.training.items import RolloutItem
 
@@ -23,12 +24,6 @@ def _figure():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _savefig(fig, path: Path, dpi: int = 110) -> None:
@@ -207,8 +202,8 @@ class TestReport:
             writer.writerows(self.rows)
         os.replace(tmp, path)
         summary = self.summary()
-        _atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
-        _atomic_write_text(self.folder / "rmse_over_time.csv", self.over_time_csv())
+        atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
+        atomic_write_text(self.folder / "rmse_over_time.csv", self.over_time_csv())
         self.plot_over_time(self.folder / "rmse_over_time.png", summary)
         print("\nRollout RMSE [mm] over ply nodes, averaged over steps (model vs baselines):")
         print(self.table())
@@ -310,5 +305,5 @@ def write_prediction(
         rollout_seconds=seconds,
         max_e3_displacement_mm=float(-u3[predicted.ply_mask].min()),
     )
-    _atomic_write_text(folder / f"{item.name}.json", json.dumps(info, indent=2))
+    atomic_write_text(folder / f"{item.name}.json", json.dumps(info, indent=2))
     print(f"predict {item.name}: {folder / (item.name + '.png')} ({seconds:.1f} s rollout)")
