@@ -30,11 +30,16 @@ from torch_ampn.sim import StampFormingConfig, simulate_batch
 from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
 
+#: The default material until 2026-12-02 (data version 1): far stiffer in transverse tension,
+#: in-plane shear and bending than a thermoplastic tape at forming temperature.
+V1: dict[str, Any] = {"transverse_stiffness": 100.0, "shear_stiffness": 20.0, "bending_stiffness": 500.0}
+
 #: Material variants: overrides of StampFormingConfig's defaults (docs/simulator.md, "Material").
 VARIANTS: dict[str, dict[str, Any]] = {
     "default": {},
-    # less numerical damping alone
-    "damping2": {"damping": 2.0},
+    "v1": V1,
+    # v1 with less numerical damping
+    "damping2": {**V1, "damping": 2.0},
     # towards a CF/PA6 UD tape at forming temperature: matrix-dominated stiffnesses (transverse,
     # in-plane shear, bending) far below the fibres'; still 2-200x above the tape's range
     "matrix20": {"transverse_stiffness": 20.0, "shear_stiffness": 5.0, "bending_stiffness": 100.0},
@@ -47,8 +52,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # matrix-dominated with the default damping (20 1/s), which holds the plies before contact
     "matrix10_d20": {"transverse_stiffness": 10.0, "shear_stiffness": 2.0, "bending_stiffness": 50.0},
     "matrix5_d20": {"transverse_stiffness": 5.0, "shear_stiffness": 1.0, "bending_stiffness": 25.0},
+    # the same with bending at the top of the tape's range (free corners flutter less)
+    "matrix5_b50": {"transverse_stiffness": 5.0, "shear_stiffness": 1.0, "bending_stiffness": 50.0},
+    # shear at the top of the tape's range (0.5 N/mm), transverse 5 and 2 N/mm
+    "shear05_b50": {"transverse_stiffness": 5.0, "shear_stiffness": 0.5, "bending_stiffness": 50.0},
+    "matrix2_b50": {"transverse_stiffness": 2.0, "shear_stiffness": 0.5, "bending_stiffness": 50.0},
     # grippers that clamp the nodes within 15 mm (about 1.5 coarse cells) instead of one node
-    "default_clamp15": {"gripper_clamp_radius": 15.0},
+    "v1_clamp15": {**V1, "gripper_clamp_radius": 15.0},
     "matrix20_clamp15": {
         "transverse_stiffness": 20.0,
         "shear_stiffness": 5.0,

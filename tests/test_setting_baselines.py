@@ -153,6 +153,28 @@ def test_the_spread_of_two_trajectories_by_hand():
     assert spread["tool_travel_mm"] == 0.0  # the template's die stays put
 
 
+def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
+    """Aims met only without a blow-up: a node carried past 1.25x the tools' travel, or half of it in a step."""
+    from torch_ampn.sim.spread import spread_report
+
+    def report(max_step: float, max_disp: float) -> dict:
+        spread = {
+            "trajectories": 2,
+            "from_mean": {"mean": 2.0},
+            "pairs": {"mean": 3.0},
+            "max_step_mm": max_step,
+            "max_displacement_mm": max_disp,
+            "tool_travel_mm": 60.0,
+        }
+        return spread_report(spread, {"mean": 0.2})
+
+    healthy = report(23.0, 53.0)  # the largest motions of healthy coarse runs (2026-12-02)
+    assert not healthy["blown_up"] and healthy["meets_aims"] and healthy["spread_over_floor"] == pytest.approx(10)
+    assert report(23.0, 79.0)["blown_up"] and not report(23.0, 79.0)["meets_aims"]  # 79 > 1.25 * 60
+    assert report(37.0, 53.0)["blown_up"]  # 37 > 0.5 * 60 within one step
+    assert not report(29.9, 74.9)["blown_up"]
+
+
 def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
     """The same settings from a start moved by 1e-6 mm: a small but real difference; the command's JSON."""
     from torch_ampn.data_cli import main

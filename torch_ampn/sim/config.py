@@ -66,12 +66,14 @@ class StampFormingConfig:
     gripper_clamp_radius: float = 0.0
 
     # material and contact (effective values; the mass is scaled up, as in explicit FEM,
-    # so that the explicit time step stays affordable)
+    # so that the explicit time step stays affordable). A matrix-dominated ply, towards a
+    # CF/PA6 UD tape at forming temperature (docs/simulator.md, "Material"); until 2026-12-02
+    # (data version 1) transverse 100, shear 20 N/mm and bending 500 N mm
     fiber_stiffness: float = 2000.0
-    transverse_stiffness: float = 100.0
-    shear_stiffness: float = 20.0
+    transverse_stiffness: float = 5.0
+    shear_stiffness: float = 1.0
     compression_ratio: float = 0.2
-    bending_stiffness: float = 500.0
+    bending_stiffness: float = 50.0
     contact_stiffness: float = 2000.0
     friction_tool: float = 0.3
     friction_ply: float = 0.2

@@ -28,6 +28,11 @@ from torch_ampn.sim.config import StampFormingConfig
 #: The aims of a dataset whose settings matter: spread at least this many times the chaos
 #: floor, and at least this many mm.
 SPREAD_OVER_FLOOR, SPREAD_MM = 5.0, 1.0
+#: A blown-up run: a ply node farther from its start than this many times the tools' travel
+#: (healthy coarse runs of the default part: at most 0.9, the dome's depth; draw-in adds little),
+#: or moving more than this fraction of it within one saved step (healthy: at most 0.4, a free
+#: corner fluttering; the punch moves 0.02 per step).
+BLOWN_UP_TRAVEL, BLOWN_UP_STEP = 1.25, 0.5
 
 
 def trajectory_rmse(a: Trajectory | torch.Tensor, b: Trajectory) -> float:
@@ -115,13 +120,17 @@ def spread_report(spread: dict[str, Any], floor: dict[str, Any]) -> dict[str, An
     """The spread against the floor: their ratio, and whether the aims are met.
 
     The aims: :data:`SPREAD_OVER_FLOOR` and :data:`SPREAD_MM`, and no blow-up (``blown_up``: a
-    ply node farther from its start than twice the farthest tool node's travel).
+    ply node farther from its start than :data:`BLOWN_UP_TRAVEL` times the farthest tool node's
+    travel, or moving more than :data:`BLOWN_UP_STEP` times that travel within one saved step).
     """
     s, f = spread["from_mean"]["mean"], floor["mean"]
     ratio = s / f if f > 0 else math.inf
-    # a ply node farther from its start than twice the tools' travel: the solver blew up
+    # a ply node carried farther than the tools go, or jumping half their travel in one step
     travel = spread["tool_travel_mm"]
-    blown_up = travel > 0 and spread["max_displacement_mm"] > 2 * travel
+    blown_up = travel > 0 and (
+        spread["max_displacement_mm"] > BLOWN_UP_TRAVEL * travel
+        or spread["max_step_mm"] > BLOWN_UP_STEP * travel
+    )
     return {
         **spread,
         "chaos_floor": floor,
