@@ -1,12 +1,16 @@
+from pathlib import Path
+
 import pytest
 import torch
 
 from torch_ampn import data_cli
 from torch_ampn.data import Trajectory
+from torch_ampn.data.dataset import split_files
 from torch_ampn.sim import StampFormingConfig, generate_dataset
 from torch_ampn.sim import dataset as dataset_module
 
 TINY = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
+DATA = Path(__file__).parent / "data" / "tiny"
 
 
 def test_generate_is_resumable_and_replaces_broken_files(tmp_path, monkeypatch):
@@ -35,6 +39,55 @@ def test_generate_is_resumable_and_replaces_broken_files(tmp_path, monkeypatch):
     assert calls == [[("train", 0), ("train", 1)]]  # the broken file's chunk, simulated whole ...
     assert paths[0].stat().st_mtime_ns == kept  # ... but only the missing file is written
     assert torch.equal(Trajectory.load(paths[1]).pos, trajs[1].pos)  # deterministic regeneration
+
+
+def test_blow_up_flags_a_node_carried_past_the_tools_or_jumping_within_a_step():
+    """Hand cases on a simulated trajectory: its own motion is healthy; a moved ply node is not."""
+    from torch_ampn.sim.spread import blow_up
+
+    traj = Trajectory.load(dataset_module.trajectory_path(DATA, "train", 0))
+    assert blow_up(traj) is None
+    travel = float((traj.pos - traj.pos[0])[:, ~traj.ply_mask].norm(dim=-1).max())  # 60 mm
+    plies = torch.nonzero(traj.ply_mask).flatten()
+    node = int(plies[(traj.pos[:, plies] - traj.pos[0, plies]).norm(dim=-1).max(0).values.argmin()])
+    far = traj.pos.clone()
+    far[-1, node] = far[0, node] + torch.tensor([0.0, 0.0, -1.3 * travel])  # 1.3 x the travel, at the end
+    assert "ends 78 mm from its start" in blow_up(_with_pos(traj, far))
+    jump = traj.pos.clone()
+    jump[2:, node] += torch.tensor([0.6 * travel, 0.0, 0.0])  # 36 mm in one step, 36 + its own in all
+    assert "moves 36 mm within one saved step" in blow_up(_with_pos(traj, jump))
+
+
+def _with_pos(traj: Trajectory, pos: torch.Tensor) -> Trajectory:
+    d = traj.to_dict()
+    d["pos"] = pos
+    return Trajectory.from_dict(d)
+
+
+def test_generate_sets_blown_up_runs_aside_and_does_not_simulate_them_again(tmp_path, monkeypatch):
+    """A run flagged by blow_up goes to <split>/failed/ with its reason, outside the split, once."""
+    real_check = dataset_module.blow_up
+    flag_seed_1 = lambda traj: "blown up (test)" if traj.meta["seed"] == 1 else real_check(traj)  # noqa: E731
+    monkeypatch.setattr(dataset_module, "blow_up", flag_seed_1)
+    paths = generate_dataset(
+        tmp_path, 2, 0, 0, workers=1, batch=2, compile=False, progress=False, config=TINY
+    )
+    assert [p.name for p in paths] == ["traj_000000.pt"]
+    aside = Trajectory.load(tmp_path / "train" / "failed" / "traj_000001.pt")
+    assert aside.meta["failed"] == "blown up (test)" and aside.meta["seed"] == 1
+    assert [p.name for p in split_files(tmp_path, "train")] == ["traj_000000.pt"]
+    calls = []
+    real = dataset_module._simulate_chunk
+    monkeypatch.setattr(dataset_module, "_simulate_chunk", lambda job: calls.append(job[1]) or real(job))
+    generate_dataset(tmp_path, 2, 0, 0, workers=1, batch=2, compile=False, progress=False, config=TINY)
+    assert calls == []  # the set-aside run counts as done
+    # a dataset made before the check: its blown-up file is moved aside on the next generate
+    monkeypatch.setattr(dataset_module, "blow_up", lambda traj: "old" if traj.meta["seed"] == 0 else None)
+    paths = generate_dataset(
+        tmp_path, 2, 0, 0, workers=1, batch=2, compile=False, progress=False, config=TINY
+    )
+    assert paths == [] and calls == []
+    assert Trajectory.load(tmp_path / "train" / "failed" / "traj_000000.pt").meta["failed"] == "old"
 
 
 def test_generate_refuses_other_settings_in_same_folder(tmp_path):

@@ -154,7 +154,7 @@ def test_the_spread_of_two_trajectories_by_hand():
 
 
 def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
-    """Aims met only without a blow-up: a node carried past 1.25x the tools' travel, or half of it in a step."""
+    """Aims met only without a blow-up: a node past 1.25x the tools' travel, or half of it in a step."""
     from torch_ampn.sim.spread import spread_report
 
     def report(max_step: float, max_disp: float) -> dict:
@@ -169,7 +169,11 @@ def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
         return spread_report(spread, {"mean": 0.2})
 
     healthy = report(23.0, 53.0)  # the largest motions of healthy coarse runs (2026-12-02)
-    assert not healthy["blown_up"] and healthy["meets_aims"] and healthy["spread_over_floor"] == pytest.approx(10)
+    assert (
+        not healthy["blown_up"]
+        and healthy["meets_aims"]
+        and healthy["spread_over_floor"] == pytest.approx(10)
+    )
     assert report(23.0, 79.0)["blown_up"] and not report(23.0, 79.0)["meets_aims"]  # 79 > 1.25 * 60
     assert report(37.0, 53.0)["blown_up"]  # 37 > 0.5 * 60 within one step
     assert not report(29.9, 74.9)["blown_up"]

@@ -22,16 +22,44 @@ from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.family import PartFamily, part_config, sample_part
 from torch_ampn.sim.simulate import simulate_batch
+from torch_ampn.sim.spread import blow_up
 
 if TYPE_CHECKING:
     from tqdm import tqdm
 
 SPLIT_SEED_OFFSET = {"train": 0, "val": 100_000, "test": 200_000}
+#: Subfolder of a split where blown-up runs are set aside (:func:`torch_ampn.sim.spread.blow_up`).
+FAILED = "failed"
 
 
 def trajectory_path(root: Path, split: str, seed: int) -> Path:
     """Where the trajectory of ``seed`` in ``split`` lives."""
     return root / split / f"traj_{seed:06d}.pt"
+
+
+def failed_path(root: Path, split: str, seed: int) -> Path:
+    """Where a blown-up trajectory of ``seed`` in ``split`` is set aside (not part of the split)."""
+    return root / split / FAILED / f"traj_{seed:06d}.pt"
+
+
+def _is_done(root: Path, split: str, seed: int) -> bool:
+    """``seed`` was simulated: its trajectory is in the split, or set aside as blown up.
+
+    A trajectory in the split that is blown up (a dataset made before the check) is set aside.
+    """
+    path = trajectory_path(root, split, seed)
+    try:
+        traj = Trajectory.load(path)
+    except (OSError, TrajectoryFormatError):
+        return _is_valid(failed_path(root, split, seed))
+    reason = blow_up(traj)
+    if reason is not None:
+        traj.meta["failed"] = reason
+        aside = failed_path(root, split, seed)
+        aside.parent.mkdir(parents=True, exist_ok=True)
+        traj.save(aside)
+        path.unlink()
+    return True
 
 
 def _is_valid(path: Path) -> bool:
@@ -61,7 +89,13 @@ def _simulate_chunk(args: tuple) -> list[str]:
         if part and part[0] is not None:
             traj.meta["part"] = dict(part[0])
         if wanted:
-            path = trajectory_path(Path(root), split, seed)
+            reason = blow_up(traj)
+            if reason is not None:  # set aside, as a design study drops a failed run
+                traj.meta["failed"] = reason
+                path = failed_path(Path(root), split, seed)
+                path.parent.mkdir(parents=True, exist_ok=True)
+            else:
+                path = trajectory_path(Path(root), split, seed)
             traj.save(path)
             out.append(str(path))
     return out
@@ -130,8 +164,13 @@ def generate_dataset(
             ``config`` (or ``resolution``), simulated alone (its own mesh), its part in
             ``meta["part"]``; ``dataset.json`` records the family.
 
+    A run that blows up (:func:`~torch_ampn.sim.spread.blow_up`) is written to
+    ``<split>/failed/`` with the reason in ``meta["failed"]``, outside the split, and not
+    simulated again: the split holds one trajectory fewer.
+
     Returns:
-        The paths of the trajectories of the dataset (of the shard's part with ``shard``).
+        The paths of the trajectories of the dataset (of the shard's part with ``shard``),
+        without the runs set aside.
 
     Raises:
         ValueError: For an unknown ``resolution``, or a folder whose ``dataset.json`` holds
@@ -172,7 +211,7 @@ def generate_dataset(
     wanted = [job for chunk in chunks for job in chunk]
     # a chunk with a missing trajectory is simulated whole (its batch is its batch); only the
     # missing files are written
-    missing = {job for job in wanted if not _is_valid(trajectory_path(out, *job))}
+    missing = {job for job in wanted if not _is_done(out, *job)}
     chunks = [chunk for chunk in chunks if missing.intersection(chunk)]
     todo = [job for job in wanted if job in missing]
     device = str(device)
@@ -199,4 +238,12 @@ def generate_dataset(
         _run_in_processes(jobs, workers, bar)
     if bar is not None:
         bar.close()
-    return [trajectory_path(out, s, seed) for s, seed in wanted]
+    failed = [failed_path(out, s, seed) for s, seed in wanted if failed_path(out, s, seed).exists()]
+    if failed and progress:
+        print(
+            f"{len(failed)} of {len(wanted)} runs blew up and are set aside in <split>/{FAILED}/ "
+            f"(not part of the dataset): "
+            + ", ".join(str(p.relative_to(out)) for p in failed[:5])
+            + (" ..." if len(failed) > 5 else "")
+        )
+    return [trajectory_path(out, s, seed) for s, seed in wanted if trajectory_path(out, s, seed).exists()]

@@ -35,6 +35,30 @@ SPREAD_OVER_FLOOR, SPREAD_MM = 5.0, 1.0
 BLOWN_UP_TRAVEL, BLOWN_UP_STEP = 1.25, 0.5
 
 
+def blow_up(traj: Trajectory) -> str | None:
+    """Why ``traj`` looks blown up (:data:`BLOWN_UP_TRAVEL`, :data:`BLOWN_UP_STEP`), or ``None``.
+
+    A run is blown up when a ply node ends up farther from its start than ``BLOWN_UP_TRAVEL``
+    times the farthest tool node's travel, or moves more than ``BLOWN_UP_STEP`` times that
+    travel within one saved step. Trajectories whose tools stay put are never flagged.
+    """
+    ply = traj.pos[:, traj.ply_mask]  # [T+1, P, 3]
+    travel = (
+        float((traj.pos - traj.pos[0])[:, ~traj.ply_mask].norm(dim=-1).max())
+        if (~traj.ply_mask).any()
+        else 0.0
+    )
+    if travel <= 0:
+        return None
+    moved = float((ply - ply[0]).norm(dim=-1).max())
+    step = float((ply[1:] - ply[:-1]).norm(dim=-1).max()) if ply.shape[0] > 1 else 0.0
+    if moved > BLOWN_UP_TRAVEL * travel:
+        return f"a ply node ends {moved:.0f} mm from its start (the tools travel {travel:.0f} mm)"
+    if step > BLOWN_UP_STEP * travel:
+        return f"a ply node moves {step:.0f} mm within one saved step (the tools travel {travel:.0f} mm)"
+    return None
+
+
 def trajectory_rmse(a: Trajectory | torch.Tensor, b: Trajectory) -> float:
     """Rollout RMSE (mm) of ``a`` (a trajectory or positions ``[T+1, N, 3]``) against ``b``, ply nodes."""
     from torch_ampn.rollout import rollout_rmse
