@@ -27,12 +27,13 @@ import torch
 
 from torch_ampn.data.io import atomic_write_text
 from torch_ampn.sim import StampFormingConfig, simulate_batch
+from torch_ampn.sim.config import MATERIAL_V1
 from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
 
 #: The default material until 2026-12-02 (data version 1): far stiffer in transverse tension,
 #: in-plane shear and bending than a thermoplastic tape at forming temperature.
-V1: dict[str, Any] = {"transverse_stiffness": 100.0, "shear_stiffness": 20.0, "bending_stiffness": 500.0}
+V1: dict[str, Any] = dict(MATERIAL_V1)
 
 #: Material variants: overrides of StampFormingConfig's defaults (docs/simulator.md, "Material").
 VARIANTS: dict[str, dict[str, Any]] = {

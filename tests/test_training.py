@@ -22,7 +22,8 @@ from torch_geometric.data import Batch  # noqa: E402
 
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
 from torch_ampn.rollout import rollout_rmse  # noqa: E402
-from torch_ampn.sim import StampFormingConfig, generate_dataset  # noqa: E402
+from torch_ampn.sim import StampFormingConfig, generate_dataset, simulate_batch  # noqa: E402
+from torch_ampn.sim.config import MATERIAL_V1  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
@@ -673,7 +674,7 @@ def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network()
     assert [len(s) for s in (model.pre, model.down, model.solve, model.post, model.up)] == [1] * 5
 
 
-def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path, small_sim, small_runs):
+def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path, small_sim):
     """A checkpoint written before ``mlp_channels`` existed (MLPs as wide as d = 8), with the
     residual that version predicted for a fixed window (made by ``tests/data`` 's writer)."""
     from pathlib import Path
@@ -687,9 +688,9 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path,
     module = AMPNLightningModule.load_from_checkpoint(legacy, weights_only=True)
     assert module.hparams.mlp_channels == module.hparams.hidden_channels == 8
     assert module.surrogate.model.pre[0].mlp_contact.hidden_channels == 8
-    # the reference's run is seed 3 of the small setting: small_runs[0] (a run does not depend on its batch)
+    # the reference's run is seed 3 of the small setting with the material of its day (data version 1)
     assert StampFormingConfig(**ref["config"]) == small_sim and ref["seed"] == 3
-    traj = small_runs[0]
+    traj = simulate_batch(StampFormingConfig(**ref["config"], **MATERIAL_V1), [3])[0]
     cache = HierarchyCache(None, max_levels=ref["max_levels"], min_coarse_nodes=ref["min_coarse_nodes"])
     window = module.surrogate.contact(step_sample(traj, ref["t"], cache(traj)))
     generator = torch.Generator().manual_seed(ref["generator_seed"])

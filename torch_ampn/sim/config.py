@@ -9,6 +9,13 @@ from typing import Any
 #: Settings added after datasets were first written, with the default that reproduces the
 #: physics before them (omitted from :meth:`StampFormingConfig.to_dict` at that value).
 ADDED_LATER: dict[str, Any] = {"gripper_clamp_radius": 0.0}
+#: The default material until 2026-12-02 (data version 1): pass these to reproduce data made
+#: before, e.g. ``StampFormingConfig(**MATERIAL_V1)`` or ``--simulator`` with them.
+MATERIAL_V1: dict[str, float] = {
+    "transverse_stiffness": 100.0,
+    "shear_stiffness": 20.0,
+    "bending_stiffness": 500.0,
+}
 
 
 @dataclass
