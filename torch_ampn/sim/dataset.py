@@ -54,12 +54,18 @@ def _is_done(root: Path, split: str, seed: int) -> bool:
         return _is_valid(failed_path(root, split, seed))
     reason = blow_up(traj)
     if reason is not None:
-        traj.meta["failed"] = reason
-        aside = failed_path(root, split, seed)
-        aside.parent.mkdir(parents=True, exist_ok=True)
-        traj.save(aside)
+        _set_aside(traj, root, split, seed, reason)
         path.unlink()
     return True
+
+
+def _set_aside(traj: Trajectory, root: Path, split: str, seed: int, reason: str) -> Path:
+    """Write a blown-up ``traj`` to ``<split>/failed/`` with ``reason`` (a design study drops failed runs)."""
+    traj.meta["failed"] = reason
+    path = failed_path(root, split, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    traj.save(path)
+    return path
 
 
 def _is_valid(path: Path) -> bool:
@@ -90,13 +96,11 @@ def _simulate_chunk(args: tuple) -> list[str]:
             traj.meta["part"] = dict(part[0])
         if wanted:
             reason = blow_up(traj)
-            if reason is not None:  # set aside, as a design study drops a failed run
-                traj.meta["failed"] = reason
-                path = failed_path(Path(root), split, seed)
-                path.parent.mkdir(parents=True, exist_ok=True)
-            else:
+            if reason is None:
                 path = trajectory_path(Path(root), split, seed)
-            traj.save(path)
+                traj.save(path)
+            else:
+                path = _set_aside(traj, Path(root), split, seed, reason)
             out.append(str(path))
     return out
 

@@ -35,6 +35,18 @@ SPREAD_OVER_FLOOR, SPREAD_MM = 5.0, 1.0
 BLOWN_UP_TRAVEL, BLOWN_UP_STEP = 1.25, 0.5
 
 
+def _largest_motions(traj: Trajectory) -> tuple[float, float, float]:
+    """Largest motion (mm) of a ply node within one saved step and from its start, and of a tool node."""
+    moved = (traj.pos - traj.pos[0]).norm(dim=-1)  # [T+1, N]
+    step = (traj.pos[1:] - traj.pos[:-1])[:, traj.ply_mask].norm(dim=-1)  # [T, P]
+    tools = moved[:, ~traj.ply_mask]
+    return (
+        float(step.max()) if step.numel() else 0.0,
+        float(moved[:, traj.ply_mask].max()),
+        float(tools.max()) if tools.numel() else 0.0,
+    )
+
+
 def blow_up(traj: Trajectory) -> str | None:
     """Why ``traj`` looks blown up (:data:`BLOWN_UP_TRAVEL`, :data:`BLOWN_UP_STEP`), or ``None``.
 
@@ -42,16 +54,9 @@ def blow_up(traj: Trajectory) -> str | None:
     times the farthest tool node's travel, or moves more than ``BLOWN_UP_STEP`` times that
     travel within one saved step. Trajectories whose tools stay put are never flagged.
     """
-    ply = traj.pos[:, traj.ply_mask]  # [T+1, P, 3]
-    travel = (
-        float((traj.pos - traj.pos[0])[:, ~traj.ply_mask].norm(dim=-1).max())
-        if (~traj.ply_mask).any()
-        else 0.0
-    )
+    step, moved, travel = _largest_motions(traj)
     if travel <= 0:
         return None
-    moved = float((ply - ply[0]).norm(dim=-1).max())
-    step = float((ply[1:] - ply[:-1]).norm(dim=-1).max()) if ply.shape[0] > 1 else 0.0
     if moved > BLOWN_UP_TRAVEL * travel:
         return f"a ply node ends {moved:.0f} mm from its start (the tools travel {travel:.0f} mm)"
     if step > BLOWN_UP_STEP * travel:
@@ -95,18 +100,14 @@ def setting_spread(trajectories: Sequence[Trajectory]) -> dict[str, Any]:
     mean = torch.stack([t.pos.double() for t in trajectories]).mean(0)  # [T+1, N, 3]
     from_mean = [trajectory_rmse(mean, t) for t in trajectories]
     pairs = [trajectory_rmse(a, b) for a, b in zip(trajectories[0::2], trajectories[1::2], strict=False)]
-    max_step = max(float((t.pos[1:] - t.pos[:-1])[:, t.ply_mask].norm(dim=-1).max()) for t in trajectories)
+    step, moved, travel = zip(*(_largest_motions(t) for t in trajectories), strict=True)
     return {
         "trajectories": len(trajectories),
         "from_mean": _summary(from_mean),
         "pairs": _summary(pairs),
-        "max_step_mm": max_step,
-        "max_displacement_mm": max(
-            float((t.pos - t.pos[0])[:, t.ply_mask].norm(dim=-1).max()) for t in trajectories
-        ),
-        "tool_travel_mm": max(
-            float((t.pos - t.pos[0])[:, ~t.ply_mask].norm(dim=-1).max()) for t in trajectories
-        ),
+        "max_step_mm": max(step),
+        "max_displacement_mm": max(moved),
+        "tool_travel_mm": max(travel),
     }
 
 
