@@ -20,7 +20,7 @@ from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E40
 from torch_ampn.training.cli import main  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "examples" / "configs"
-NAMES = ["quickstart.yaml", "paper.yaml", "family.yaml", "settings.yaml"]
+NAMES = ["quickstart.yaml", "paper.yaml", "family.yaml", "settings.yaml", "settings_prior.yaml"]
 
 
 def _build(name, tmp_path, monkeypatch):

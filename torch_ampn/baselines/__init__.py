@@ -7,8 +7,11 @@
   (:mod:`~torch_ampn.baselines.settings`): :class:`MeanTrajectory`, :class:`NearestSetting`,
   :class:`PODRegression` (POD plus a Gaussian process, RBF or linear regression on the
   process settings), and :func:`setting_effect_r2`.
+* Priors (:mod:`~torch_ampn.baselines.prior`): a setting-aware baseline's trajectory as an
+  input of a surrogate with ``prior_features``: :func:`fitted_prior`, :func:`out_of_fold_priors`.
 """
 
+from torch_ampn.baselines.prior import PRIOR_NAMES, fitted_prior, make_prior, out_of_fold_priors
 from torch_ampn.baselines.settings import (
     MeanTrajectory,
     NearestSetting,
@@ -24,12 +27,16 @@ from torch_ampn.baselines.settings import (
 from torch_ampn.baselines.trivial import RigidWithPunch, static_plies
 
 __all__ = [
+    "PRIOR_NAMES",
     "MeanTrajectory",
     "NearestSetting",
     "PODRegression",
     "RigidWithPunch",
     "TrajectoryBaseline",
     "fit_setting_baselines",
+    "fitted_prior",
+    "make_prior",
+    "out_of_fold_priors",
     "process_settings",
     "rollout_mse",
     "setting_baselines",

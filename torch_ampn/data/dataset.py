@@ -6,7 +6,7 @@ import copy
 import hashlib
 import os
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import torch
@@ -74,10 +74,19 @@ class TrajectoryDataset:
         root: Dataset folder with ``train/``, ``val/``, ``test/`` sub-folders.
         split: ``"train"``, ``"val"`` or ``"test"``.
         max_cached_mb: Memory for loaded trajectories in MB (their tensors); ``None``: no limit.
+        priors: File stem -> prior ``[T+1, N, 3]``, set as each loaded trajectory's
+            :attr:`~torch_ampn.data.Trajectory.prior` (:mod:`torch_ampn.baselines.prior`); ``None``: none.
     """
 
-    def __init__(self, root: str | os.PathLike, split: str, max_cached_mb: float | None = 2048.0) -> None:
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str,
+        max_cached_mb: float | None = 2048.0,
+        priors: Mapping[str, Tensor] | None = None,
+    ) -> None:
         self.root, self.split = Path(root), split
+        self.priors = priors
         self.files = split_files(root, split)
         if not self.files:
             raise FileNotFoundError(f"{self.root / split}: no trajectory files (*.pt)")
@@ -93,6 +102,11 @@ class TrajectoryDataset:
             self._cache.move_to_end(i)
             return self._cache[i]
         traj = Trajectory.load(self.files[i])
+        if self.priors is not None:
+            stem = self.files[i].stem
+            if stem not in self.priors:
+                raise KeyError(f"{self.files[i]}: no prior for this trajectory")
+            traj.prior = self.priors[stem]
         self._cache[i] = traj
         self._cached_bytes += _tensor_bytes(traj)
         limit = self.max_cached_bytes
@@ -173,6 +187,8 @@ def set_window(
     ply_mask: Tensor,
     gripper_pos: Tensor,
     gripper_force: Tensor,
+    prior_pos: Tensor | None = None,
+    prior_next: Tensor | None = None,
 ) -> HierarchicalData:
     r"""Write the state fields of a window :math:`(t-1, t)` into ``data`` (in place) and return it.
 
@@ -187,8 +203,14 @@ def set_window(
         ply_mask: ``BoolTensor[N]``: ply nodes (predicted); the others are tools.
         gripper_pos: Gripper positions at :math:`t-1` ``[B, G, 3]``.
         gripper_force: Gripper force vectors at :math:`t-1` ``[B, G, 3]``.
+        prior_pos: The prior's positions :math:`p^{t-1}` ``[N, 3]`` (models with prior
+            features; see :attr:`~torch_ampn.data.Trajectory.prior`), or ``None``.
+        prior_next: The prior's positions :math:`p^t` ``[N, 3]``, or ``None``.
     """
     l0 = data["l0"]
+    if prior_pos is not None and prior_next is not None:
+        l0.prior_pos = prior_pos
+        l0.prior_next = prior_next
     l0.pos = pos
     l0.prev_disp = prev_disp
     l0.bc_disp = torch.where(ply_mask[:, None], torch.zeros_like(next_disp), next_disp)
@@ -212,7 +234,9 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
       :class:`~torch_ampn.training.AMPNLightningModule`);
     * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies;
     * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}`;
-    * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level.
+    * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level;
+    * where ``traj.prior`` is set: ``prior_pos``, ``prior_next`` and ``prior_before`` ``[N, 3]``,
+      the prior's positions :math:`p^{t-1}`, :math:`p^t` and :math:`p^{\max(t-2, 0)}`.
 
     Graph level: ``gripper_pos`` and ``gripper_force`` ``[1, G, 3]`` at :math:`t-1`,
     ``prev_gripper_pos`` and ``prev_gripper_force`` at :math:`\max(t-2, 0)`,
@@ -222,6 +246,7 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
         raise IndexError(f"step {t} out of range 1..{traj.num_steps}")
     x_prev, x_next = traj.pos[t - 1], traj.pos[t]
     gripper_pos, gripper_force = traj.gripper_positions(), traj.gripper_force_vectors()  # [T+1, G, 3]
+    prior = traj.prior  # [T+1, N, 3] or None
     data = set_window(
         copy.copy(hierarchy),
         pos=x_prev,
@@ -230,8 +255,12 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
         ply_mask=traj.node_type == NodeType.PLY,
         gripper_pos=gripper_pos[t - 1][None],
         gripper_force=gripper_force[t - 1][None],
+        prior_pos=None if prior is None else prior[t - 1],
+        prior_next=None if prior is None else prior[t],
     )
     l0 = data["l0"]
+    if prior is not None:
+        l0.prior_before = prior[max(t - 2, 0)]
     l0.pos0 = traj.pos[0]
     l0.prev_prev_disp = traj.pos[t - 2] - traj.pos[t - 3] if t >= 3 else torch.zeros_like(x_prev)
     l0.fiber = traj.fiber
@@ -262,6 +291,7 @@ class StepDataset(torch.utils.data.Dataset):
             handed out are the cached objects: replace their tensors rather than writing into
             them (a batched sample is a new object anyway).
         max_cached_mb: Memory for loaded trajectories (see :class:`TrajectoryDataset`).
+        priors: Priors of the trajectories (see :class:`TrajectoryDataset`).
     """
 
     def __init__(
@@ -274,11 +304,12 @@ class StepDataset(torch.utils.data.Dataset):
         transform: Callable[[HierarchicalData], HierarchicalData] | None = None,
         cache_samples: bool = False,
         max_cached_mb: float | None = 2048.0,
+        priors: Mapping[str, Tensor] | None = None,
     ) -> None:
         self.transform = transform
         self.cache_samples = cache_samples
         self._samples: dict[int, HierarchicalData] = {}
-        self.trajectories = TrajectoryDataset(root, split, max_cached_mb=max_cached_mb)
+        self.trajectories = TrajectoryDataset(root, split, max_cached_mb=max_cached_mb, priors=priors)
         cache = Path(root) / "cache" if cache_dir == "default" else cache_dir
         self.hierarchies = HierarchyCache(cache, max_levels=max_levels, min_coarse_nodes=min_coarse_nodes)
         self.steps = [self.trajectories[i].num_steps for i in range(len(self.trajectories))]

@@ -63,6 +63,10 @@ class Trajectory:
     gripper_anchor: Tensor  # [G, 3]
     gripper_force: Tensor  # [G]
     meta: dict[str, Any] = field(default_factory=dict)
+    #: Optional prior prediction of the positions ``[T+1, N, 3]`` (e.g. a setting-aware baseline's
+    #: trajectory for these settings, :mod:`torch_ampn.baselines.prior`), an input of models with
+    #: ``prior_features``; derived, never written to the file.
+    prior: Tensor | None = field(default=None, repr=False)
 
     # ---- sizes -----------------------------------------------------------------------
     @property
@@ -115,7 +119,8 @@ class Trajectory:
         moved = {f: getattr(self, f) for f in _FIELDS}
         moved = {f: v.to(device) if isinstance(v, Tensor) else v for f, v in moved.items()}
         moved["cells"] = [c.to(device) for c in self.cells]
-        return Trajectory(**moved, meta=dict(self.meta))
+        prior = None if self.prior is None else self.prior.to(device)
+        return Trajectory(**moved, meta=dict(self.meta), prior=prior)
 
     # ---- files -----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -11,7 +11,8 @@ Feature layout (columns, in this order):
   :math:`\Delta u^t_{BC}` (3, zero on plies), fiber direction (3: a unit vector in the
   initial configuration, zero on tools), the component encoding (:func:`component_features`:
   a one-hot of ``num_components`` columns, or the ply's place in its stack), and the
-  gripper features of :func:`gripper_features` (``7 G + 7``). The N(0, 1) noise input (the
+  gripper features of :func:`gripper_features` (``7 G + 7``); for models with prior features,
+  :func:`prior_features` (6) last. The N(0, 1) noise input (the
   noisy target in ROBIN mode) is *not* part of these columns: :class:`~torch_ampn.nn.AMPN`
   takes it as its own argument and appends it, so that a denoiser can change it per step.
 * coarse (``l1 .. lL``) nodes, :func:`coarse_node_features`: node-type one-hot only.
@@ -52,6 +53,9 @@ EDGE_FEATURES_WITH_INITIAL = 8
 RELATIONS_WITH_INITIAL = (MESH, DOWN, UP)
 
 
+#: Columns of :func:`prior_features`: the offset from the prior and the prior's next step.
+PRIOR_FEATURES = 6
+
 #: Ways to tell a node's component (:func:`component_features`).
 COMPONENT_ENCODINGS = ("onehot", "stack")
 #: Columns of the ``"stack"`` component encoding: plies below and above a ply node.
@@ -65,11 +69,16 @@ def num_component_features(num_components: int, encoding: str = "onehot") -> int
 
 
 def num_fine_node_features(
-    num_components: int, num_grippers: int, fiber_channels: int = 3, component_encoding: str = "onehot"
+    num_components: int,
+    num_grippers: int,
+    fiber_channels: int = 3,
+    component_encoding: str = "onehot",
+    prior: bool = False,
 ) -> int:
     """Number of columns of :func:`fine_node_features` (without the noise input)."""
     return (
-        NodeType.count()
+        (PRIOR_FEATURES if prior else 0)
+        + NodeType.count()
         + 3  # previous residual
         + 3  # prescribed tool motion
         + fiber_channels
@@ -199,6 +208,24 @@ def gripper_features(
     return torch.cat([per_gripper, f_proj, f_weighted, f_weighted.norm(dim=-1, keepdim=True)], dim=-1)
 
 
+def prior_features(pos: Tensor, prior_pos: Tensor, prior_next: Tensor) -> Tensor:
+    r"""Where a prior prediction of the trajectory puts every node, relative to the node, ``[N, 6]``.
+
+    A prior :math:`p` (e.g. the POD + GP baseline's trajectory for these settings,
+    :mod:`torch_ampn.baselines.prior`) enters as two displacements, invariant to translation:
+    the offset :math:`p^{t-1}_i - x^{t-1}_i` of the prior from the current position (3) and the
+    prior's step :math:`p^t_i - p^{t-1}_i` (3). A model then learns a correction of the prior
+    rather than the whole motion.
+
+    Args:
+        pos: Current positions :math:`x^{t-1}` ``[N, 3]``.
+        prior_pos: The prior's positions :math:`p^{t-1}` ``[N, 3]``.
+        prior_next: The prior's positions :math:`p^t` ``[N, 3]``.
+    """
+    prior_pos, prior_next = prior_pos.to(pos.dtype), prior_next.to(pos.dtype)
+    return torch.cat([prior_pos - pos, prior_next - prior_pos], dim=-1)
+
+
 def fine_node_features(
     node_type: Tensor,
     prev_disp: Tensor,
@@ -209,6 +236,7 @@ def fine_node_features(
     gripper: Tensor,
     component_encoding: str = "onehot",
     batch: Tensor | None = None,
+    prior: Tensor | None = None,
 ) -> Tensor:
     r"""Features of the fine (``l0``) nodes, without the noise input.
 
@@ -222,23 +250,24 @@ def fine_node_features(
         gripper: The nodes' :func:`gripper_features` ``[N, 7 G + 7]``; its dtype is the output's.
         component_encoding: See :func:`component_features`.
         batch: Graph of every node (for the ``"stack"`` encoding of a batch).
+        prior: The nodes' :func:`prior_features` ``[N, 6]``, or ``None`` (a model without them).
 
     Returns:
-        ``[N, num_fine_node_features(C, G, F, component_encoding)]`` in the column order of
-        the module docstring.
+        ``[N, num_fine_node_features(C, G, F, component_encoding, prior is not None)]`` in the
+        column order of the module docstring.
     """
     dtype = gripper.dtype
-    return torch.cat(
-        [
-            node_type_one_hot(node_type, dtype),
-            prev_disp.to(dtype),
-            bc_disp.to(dtype),
-            fiber.to(dtype),
-            component_features(component, node_type, num_components, component_encoding, batch, dtype),
-            gripper,
-        ],
-        dim=-1,
-    )
+    parts = [
+        node_type_one_hot(node_type, dtype),
+        prev_disp.to(dtype),
+        bc_disp.to(dtype),
+        fiber.to(dtype),
+        component_features(component, node_type, num_components, component_encoding, batch, dtype),
+        gripper,
+    ]
+    if prior is not None:
+        parts.append(prior.to(dtype))
+    return torch.cat(parts, dim=-1)
 
 
 def coarse_node_features(node_type: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
@@ -283,6 +312,7 @@ def hierarchical_features(
     alpha: float = 3e-2,
     eps: float = 1e-8,
     component_encoding: str = "onehot",
+    prior: bool = False,
 ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
     """All node and edge features of a (batched) :class:`~torch_ampn.data.HierarchicalData`.
 
@@ -299,6 +329,9 @@ def hierarchical_features(
         alpha: See :func:`gripper_features`.
         eps: See :func:`gripper_features`.
         component_encoding: See :func:`component_features`.
+        prior: Append :func:`prior_features` to the fine features (reads ``data["l0"]``'s
+            ``prior_pos`` and ``prior_next``, which :func:`~torch_ampn.data.step_sample` sets
+            from :attr:`~torch_ampn.data.Trajectory.prior`).
 
     Returns:
         ``(x_dict, edge_attr_dict)``: ``x_dict["lk"]`` node features and
@@ -310,6 +343,14 @@ def hierarchical_features(
     fine = data["l0"]
     pos, pos0 = fine.pos, fine.pos0
     batch = fine.batch if "batch" in fine else None
+    prior_columns = None
+    if prior:
+        if "prior_pos" not in fine or "prior_next" not in fine:
+            raise ValueError(
+                "the model takes prior features but the data has no prior (l0.prior_pos / prior_next): "
+                "set the trajectories' prior (AMPNDataModule's data.prior)"
+            )
+        prior_columns = prior_features(pos, fine.prior_pos, fine.prior_next)
     x_dict = {
         "l0": fine_node_features(
             fine.node_type,
@@ -321,6 +362,7 @@ def hierarchical_features(
             gripper_features(pos, data.gripper_pos, data.gripper_force, batch, alpha, eps),
             component_encoding,
             batch,
+            prior_columns,
         )
     }
     pos_l, pos0_l = [pos], [pos0]

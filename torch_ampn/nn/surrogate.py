@@ -65,6 +65,10 @@ class AMPNSurrogate(nn.Module):
         component_encoding: How a node's component enters its features
             (:func:`~torch_ampn.nn.features.component_features`): ``"onehot"`` (the paper's, one
             part) or ``"stack"`` (a ply's place in its stack: the same on parts of any ply count).
+        prior_features: Take a prior prediction of the trajectory as input
+            (:func:`~torch_ampn.nn.features.prior_features`: 6 more fine-node columns), so that
+            the network learns a correction of the prior; the windows must then carry it
+            (:attr:`~torch_ampn.data.Trajectory.prior`). Rollouts take the plain path.
         **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
@@ -87,6 +91,7 @@ class AMPNSurrogate(nn.Module):
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
+        prior_features: bool = False,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -108,6 +113,7 @@ class AMPNSurrogate(nn.Module):
         self.huber_delta = huber_delta
         self.coarse_loss_weight = coarse_loss_weight
         self.component_encoding = component_encoding
+        self.prior_features = bool(prior_features)
         self.contact = ComponentRadiusGraph(
             contact_radius,
             contact_k,
@@ -116,7 +122,9 @@ class AMPNSurrogate(nn.Module):
             mode=contact_mode,
             positions=contact_positions,
         )
-        fine_in = num_fine_node_features(num_components, num_grippers, component_encoding=component_encoding)
+        fine_in = num_fine_node_features(
+            num_components, num_grippers, component_encoding=component_encoding, prior=self.prior_features
+        )
         model = AMPN(
             fine_in,
             num_levels=num_levels,
@@ -191,6 +199,7 @@ class AMPNSurrogate(nn.Module):
             self.num_levels,
             alpha=self.gripper_alpha,
             component_encoding=self.component_encoding,
+            prior=self.prior_features,
         )
 
     def normalized_features(
@@ -300,4 +309,5 @@ class AMPNSurrogate(nn.Module):
             f"diffusion_steps={self.diffusion_steps}"
             + (", predict_change=True" if self.predict_change else "")
             + (f", component_encoding={encoding!r}" if encoding != "onehot" else "")
+            + (", prior_features=True" if self.prior_features else "")
         )

@@ -10,8 +10,10 @@ from typing import Any
 
 import lightning as L
 import torch
+from torch import Tensor
 from torch.utils.data import DataLoader as TorchDataLoader
 
+from torch_ampn.baselines.prior import fitted_prior, make_prior, out_of_fold_priors
 from torch_ampn.data.dataset import (
     HierarchyCache,
     StepDataset,
@@ -91,6 +93,12 @@ class AMPNDataModule(L.LightningDataModule):
         family: Generate a family of parts (:class:`~torch_ampn.sim.PartFamily` settings, or
             ``"default"``): every trajectory its own tool geometry and ply stack; pair it with
             ``model.component_encoding: stack``.
+        prior: A setting-aware baseline whose trajectory every trajectory carries as its
+            :attr:`~torch_ampn.data.Trajectory.prior` (for ``model.prior_features``; one of
+            :data:`~torch_ampn.baselines.prior.PRIOR_NAMES`, e.g. ``"pod_gp"``): out of fold on the
+            training split (``prior_folds`` folds), fitted on the whole training split for the
+            others and for predict; ``None``: no prior.
+        prior_folds: Folds of the training split's out-of-fold priors.
         shuffle_seed: Seed of the training windows' order (a permutation per epoch, see
             :class:`~torch_ampn.training.items.ResumableShuffleSampler`); ``None``: the fit's
             ``seed_everything`` value (0 without one). A fit resumed from a checkpoint continues
@@ -125,6 +133,8 @@ class AMPNDataModule(L.LightningDataModule):
         predict_batch_size: int = 1,
         shuffle_seed: int | None = None,
         family: dict[str, Any] | str | None = None,
+        prior: str | None = None,
+        prior_folds: int = 5,
     ) -> None:
         super().__init__()
         if predict_batch_size < 1:
@@ -139,6 +149,9 @@ class AMPNDataModule(L.LightningDataModule):
         )
         self.train_dataset: StepDataset | None = None
         self._splits: dict[str, RolloutDataset] = {}
+        self._prior_baseline: Any = None  # the prior fitted on the whole training split
+        if prior is not None:
+            make_prior(prior)  # a readable error for an unknown name, before any work
 
     # ---- data on disk ------------------------------------------------------------------------
     def prepare_data(self) -> None:
@@ -199,7 +212,9 @@ class AMPNDataModule(L.LightningDataModule):
 
     # ---- stages ---------------------------------------------------------------------------------
     def _rollout_split(self, split: str, limit: int | None = None) -> RolloutDataset:
-        trajectories = TrajectoryDataset(self.data_dir, split, max_cached_mb=self.hparams.trajectory_cache_mb)
+        trajectories = TrajectoryDataset(
+            self.data_dir, split, max_cached_mb=self.hparams.trajectory_cache_mb, priors=self._priors(split)
+        )
         count = len(trajectories) if limit is None else min(limit, len(trajectories))
         names = [f.stem for f in trajectories.files[:count]]
         return RolloutDataset(names, trajectories.__getitem__, self.hierarchies)
@@ -216,6 +231,7 @@ class AMPNDataModule(L.LightningDataModule):
                 transform=self.contact,
                 cache_samples=hp.cache_windows,
                 max_cached_mb=hp.trajectory_cache_mb,
+                priors=self._priors("train"),
             )
         if stage in ("fit", "validate"):
             self._splits["val"] = self._rollout_split("val", hp.limit_val_trajectories)
@@ -223,6 +239,34 @@ class AMPNDataModule(L.LightningDataModule):
             self._splits["test"] = self._rollout_split("test")
         if stage == "predict":
             self._splits["predict"] = self._predict_split()
+
+    # ---- priors ---------------------------------------------------------------------------------
+    def _priors(self, split: str) -> dict[str, Tensor] | None:
+        """File stem -> prior of every trajectory of ``split`` (``None`` without ``prior``)."""
+        name = self.hparams.get("prior")
+        if name is None:
+            return None
+        trajectories = TrajectoryDataset(self.data_dir, split, max_cached_mb=0)
+        stems = [f.stem for f in trajectories.files]
+        if split == "train":
+            print(f"prior {name}: out of {self.hparams.prior_folds} folds on the training split")
+            priors = out_of_fold_priors(name, list(trajectories), self.hparams.prior_folds, progress=True)
+        else:
+            baseline = self.prior_baseline()
+            priors = [baseline.predict(traj) for traj in trajectories]
+        return dict(zip(stems, priors, strict=True))
+
+    def prior_baseline(self) -> Any:
+        """The ``prior`` baseline fitted on the whole training split (fitted once, on first use)."""
+        if self._prior_baseline is None:
+            trajectories = self.training_trajectories()
+            if not trajectories:
+                raise FileNotFoundError(
+                    f"{self.data_dir / 'train'}: data.prior {self.hparams.prior!r} is fitted on the "
+                    "training split, which has no trajectories"
+                )
+            self._prior_baseline = fitted_prior(self.hparams.prior, trajectories)
+        return self._prior_baseline
 
     def training_trajectories(self) -> list[Trajectory]:
         """Every trajectory of the training split (for the setting-aware baselines of ``test``)."""
@@ -242,6 +286,9 @@ class AMPNDataModule(L.LightningDataModule):
                 trajectories.append(process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"]))
             except (TypeError, ValueError) as err:
                 raise ValueError(f"{source}: setting {i} ({names[i]}): {err}") from None
+        if self.hparams.get("prior") is not None:
+            for traj in trajectories:
+                traj.prior = self.prior_baseline().predict(traj)
         return RolloutDataset(names, trajectories.__getitem__, self.hierarchies)
 
     def predict_settings(self) -> list[dict[str, Any]]:
@@ -406,7 +453,15 @@ class AMPNDataModule(L.LightningDataModule):
         return int(family["num_plies"][1]) + 2 if family else 0  # plies, punch and die
 
     def check_model(self, surrogate: torch.nn.Module) -> None:
-        """Raise a clear error if the model's component/gripper counts do not match the data."""
+        """Raise a clear error if the model's component/gripper counts or prior do not match the data."""
+        wants_prior = bool(getattr(surrogate, "prior_features", False))
+        if wants_prior != (self.hparams.get("prior") is not None):
+            raise ValueError(
+                "model.prior_features needs data.prior (e.g. pod_gp)"
+                if wants_prior
+                else f"data.prior is {self.hparams.prior!r} but the model has no prior features "
+                "(set model.prior_features true)"
+            )
         split = next((s for s in ("train", "val", "test") if split_files(self.data_dir, s)), None)
         if split is None:
             return

@@ -58,6 +58,7 @@ SURROGATE_ARGUMENTS = (
     "huber_delta",
     "coarse_loss_weight",
     "component_encoding",
+    "prior_features",
 )
 
 
@@ -95,6 +96,9 @@ class AMPNLightningModule(L.LightningModule):
             ``"stack"`` (plies below and above a ply node: the same on parts of any ply count;
             :func:`~torch_ampn.nn.features.component_features`).
         num_grippers: Grippers (2 for the default dataset).
+        prior_features: Take a prior trajectory (the data module's ``prior``, e.g. POD + GP) as
+            input and learn its correction (:func:`~torch_ampn.nn.features.prior_features`);
+            rollouts then take the plain path.
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -178,6 +182,7 @@ class AMPNLightningModule(L.LightningModule):
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
+        prior_features: bool = False,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
@@ -347,7 +352,7 @@ class AMPNLightningModule(L.LightningModule):
         ``t >= 2``: ``pos`` :math:`+ e`, ``prev_disp`` :math:`+ e`, ``target`` :math:`- e`.
         """
         fine = data["l0"]
-        prior = set_window(
+        before = set_window(
             copy.copy(data),
             pos=fine.pos - fine.prev_disp,  # x^{t-2}
             prev_disp=fine.prev_prev_disp,
@@ -355,9 +360,11 @@ class AMPNLightningModule(L.LightningModule):
             ply_mask=fine.ply_mask,
             gripper_pos=data.prev_gripper_pos,
             gripper_force=data.prev_gripper_force,
+            prior_pos=fine.get("prior_before"),
+            prior_next=fine.get("prior_pos"),
         )
         with torch.no_grad():
-            predicted = self.surrogate.predict_residual(prior).to(fine.pos.dtype)  # [N, 3]
+            predicted = self.surrogate.predict_residual(before).to(fine.pos.dtype)  # [N, 3]
         step = data.step[fine.batch] if "batch" in fine else data.step.expand(fine.num_nodes)  # [N]
         moved = fine.ply_mask & (step >= 2)  # [N]
         error = torch.where(moved[:, None], predicted - fine.prev_disp, torch.zeros_like(predicted))
