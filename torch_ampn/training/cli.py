@@ -30,6 +30,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from torch_ampn.training.datamodule import AMPNDataModule
 from torch_ampn.training.module import AMPNLightningModule
+from torch_ampn.training.progress import FitProgress
 
 #: Options of :class:`AMPNLightningModule` that do not change the network: given with
 #: ``--ckpt_path``, they win over the checkpoint's values.
@@ -71,6 +72,17 @@ def _check_checkpoint(subcommand: str, path: str) -> None:
         )
 
 
+def shortfall(steps: int, planned: int) -> str | None:
+    """A ``WARNING`` line if a fit made fewer than ``planned`` steps; ``None`` if not (or none planned)."""
+    if planned is None or planned <= 0 or steps >= planned:
+        return None
+    return (
+        f"WARNING: the fit ended after {steps} of its planned {planned} steps "
+        f"({100 * steps / planned:.0f} %): its result is not that of the config "
+        "(a time limit, an interruption, or a machine slower or busier than planned)"
+    )
+
+
 class AMPNCLI(LightningCLI):
     """LightningCLI with torch-ampn's model -> data links; checkpoint settings never hide given ones."""
 
@@ -81,6 +93,19 @@ class AMPNCLI(LightningCLI):
         parser.link_arguments("model.contact_mode", "data.contact_mode")
         parser.link_arguments("model.contact_positions", "data.contact_positions")
         parser.link_arguments("model.num_levels", "data.max_levels")
+        parser.add_lightning_class_args(FitProgress, "progress")
+
+    def after_fit(self) -> None:
+        """One line when the fit ended short of ``trainer.max_steps`` (e.g. at ``max_time``).
+
+        With ``AMPN_REQUIRE_PLANNED_STEPS=1`` (the main job sets it) such a fit exits with status 3.
+        """
+        message = shortfall(self.trainer.global_step, self.trainer.max_steps)
+        if message is None:
+            return
+        print(message, file=sys.stderr)
+        if os.environ.get("AMPN_REQUIRE_PLANNED_STEPS") == "1":
+            sys.exit(3)
 
     def _parse_ckpt_path(self) -> None:
         """Take the model's settings from ``--ckpt_path``, keeping given runtime options; refuse conflicts."""

@@ -32,6 +32,28 @@ def _savefig(fig, path: Path, dpi: int = 110) -> None:
     os.replace(tmp, path)
 
 
+def verdict(summary: dict[str, float | str]) -> list[str]:
+    """One ``WARNING`` line for each baseline of a test summary that the model does not beat.
+
+    Checked: the best trivial baseline (``baseline_rmse``) and, where reported, the best
+    setting-aware one (``setting_baseline_rmse``). An empty list when the model beats both.
+    """
+    model = float(summary["rollout_rmse"])
+    lines = []
+    if model >= float(summary["baseline_rmse"]):
+        lines.append(
+            f"WARNING: the model ({model:.4f} mm) tests no better than the best trivial baseline "
+            f"({float(summary['baseline_rmse']):.4f} mm), which ignores the training data"
+        )
+    if "setting_baseline_rmse" in summary and model >= float(summary["setting_baseline_rmse"]):
+        lines.append(
+            f"WARNING: the model ({model:.4f} mm) tests no better than the setting-aware baseline "
+            f"{summary['setting_baseline']} ({float(summary['setting_baseline_rmse']):.4f} mm), "
+            "built from the same training trajectories"
+        )
+    return lines
+
+
 def plot_final_shapes(path: Path, traj: Trajectory, pred: Tensor, title: str) -> None:
     """Predicted vs true final shape of the bottom ply (seen from below), coloured by e3 displacement."""
     from torch_ampn.viz import plot_laminate
@@ -229,6 +251,8 @@ class TestReport:
                     f"{k} {summary[f'{k}_r2']:.2f}" for k in SETTING_BASELINES if f"{k}_r2" in summary
                 )
             )
+        for line in verdict(summary):
+            print(line)
         print(f"wrote {path}, {self.folder / 'rmse_over_time.png'} and more in {self.folder}")
         return summary
 

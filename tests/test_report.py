@@ -1,0 +1,83 @@
+"""End-of-run lines: the test verdict (one per baseline not beaten) and a fit that ended short."""
+
+from torch_ampn.training.report import verdict
+
+
+def _summary(model, trivial, aware=None):
+    out = {"rollout_rmse": model, "baseline_rmse": trivial}
+    if aware is not None:
+        out.update(setting_baseline="pod_gp", setting_baseline_rmse=aware)
+    return out
+
+
+def test_verdict_is_silent_when_the_model_beats_every_baseline():
+    assert verdict(_summary(0.2, 3.0, 0.3)) == []
+    assert verdict(_summary(0.2, 3.0)) == []
+
+
+def test_verdict_names_each_baseline_the_model_does_not_beat():
+    (line,) = verdict(_summary(0.62, 3.05, 0.31))
+    assert line.startswith("WARNING:") and "pod_gp (0.3100 mm)" in line and "0.6200 mm" in line
+    lines = verdict(_summary(6.34, 3.97, 0.5))
+    assert len(lines) == 2 and "trivial baseline (3.9700 mm)" in lines[0]
+    # a tie is not a win
+    assert len(verdict(_summary(0.5, 0.5))) == 1
+
+
+def test_shortfall_line_only_when_a_fit_ends_before_its_planned_steps():
+    from torch_ampn.training.cli import shortfall
+
+    assert shortfall(3000, 3000) is None
+    assert shortfall(10, -1) is None  # no step limit planned
+    line = shortfall(930, 3000)
+    assert line.startswith("WARNING:") and "930 of its planned 3000 steps (31 %)" in line
+
+
+def test_fit_progress_prints_the_whole_fits_rate_and_eta(monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    import torch_ampn.training.progress as progress
+
+    clock = iter([0.0, 600.0, 700.0, 800.0])  # start; step 1 (compiles 600 s); steps 250, 500
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    trainer = SimpleNamespace(global_step=0, max_steps=1000, is_global_zero=True)
+    module = SimpleNamespace(hparams={"compile_network": True})
+    callback = progress.FitProgress(every_n_steps=250)
+    callback.on_train_start(trainer, module)
+    for step in (1, 250, 500):
+        trainer.global_step = step
+        callback.on_train_batch_end(trainer, module, None, None, step - 1)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "[fit] the first step took 10 min 00 s (compiling the training step)"
+    # 249 steps in 100 s: 2.49 steps/s, 750 steps left -> 301 s
+    assert lines[1] == "[fit] step 250/1000, 2.49 steps/s, 11 min 40 s so far, ETA 5 min 01 s"
+    assert lines[2] == "[fit] step 500/1000, 2.50 steps/s, 13 min 20 s so far, ETA 3 min 20 s"
+
+
+def test_format_seconds():
+    from torch_ampn.training.progress import format_seconds
+
+    assert [format_seconds(s) for s in (0.4, 59, 60, 3599, 3720)] == [
+        "0 s", "59 s", "1 min 00 s", "59 min 59 s", "1 h 02 min",
+    ]  # fmt: skip
+
+
+def test_cli_after_fit_warns_and_with_the_main_jobs_setting_exits_3(monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    import pytest
+
+    from torch_ampn.training.cli import AMPNCLI
+
+    cli = AMPNCLI.__new__(AMPNCLI)  # only the hook: no parser, no Trainer
+    cli.trainer = SimpleNamespace(global_step=3000, max_steps=3000)
+    monkeypatch.setenv("AMPN_REQUIRE_PLANNED_STEPS", "1")
+    cli.after_fit()
+    assert capsys.readouterr().err == ""
+    cli.trainer.global_step = 75
+    with pytest.raises(SystemExit) as exit_:
+        cli.after_fit()
+    assert exit_.value.code == 3 and "75 of its planned 3000 steps" in capsys.readouterr().err
+    monkeypatch.delenv("AMPN_REQUIRE_PLANNED_STEPS")
+    cli.after_fit()  # a user's own fit: the line only
+    assert "WARNING" in capsys.readouterr().err
