@@ -11,6 +11,8 @@ coarse``, ``paper.yaml`` for ``paper``) with one change, trained for a fixed num
     radius          plain-radius contact edges (every node within r, any component)
     static_contact  contact edges built once from the initial state and kept (ROBIN's choice)
     k3              the paper's k = 3 contact neighbours (only where the base uses another k)
+    prior           the AMPN reading the POD + GP prediction as input features (not in the paper:
+                    ``model.prior_features``, ``data.prior pod_gp``; plain-path rollouts)
 
 A cell (variant, seed) runs ``torch-ampn fit`` and ``torch-ampn test`` in subprocesses, then
 measures in this process: the rollout of one test trajectory for the figures, the contact
@@ -77,6 +79,9 @@ VARIANTS = {
         "AMPN, contact edges of the initial state", {"model.contact_positions": "initial"}
     ),
     "k3": Variant("AMPN, k = 3 contact neighbours", {"model.contact_k": 3}),
+    "prior": Variant(
+        "AMPN correcting the POD + GP prior", {"model.prior_features": True, "data.prior": "pod_gp"}
+    ),
 }
 BASE_CONFIGS = {"coarse": "examples/configs/quickstart.yaml", "paper": "examples/configs/paper.yaml"}
 
