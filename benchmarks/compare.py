@@ -266,7 +266,7 @@ def measure(cell_dir: Path, config: dict, args: argparse.Namespace) -> dict[str,
     device = torch.device(args.device)
     module = module.to(device).eval()
     hp = module.hparams
-    data = {k: v for k, v in config.get("data", {}).items() if k in ("min_coarse_nodes",)}
+    data = {k: v for k, v in config.get("data", {}).items() if k in ("min_coarse_nodes", "prior")}
     dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels, **data)
     test = dm._rollout_split("test")
     items = [test[i] for i in range(len(test))]
@@ -415,7 +415,8 @@ def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
             continue
         module = AMPNLightningModule.load_from_checkpoint(ckpts[0], map_location=args.device).eval()
         hp = module.hparams
-        dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels)
+        prior = VARIANTS[variant].changes.get("data.prior")
+        dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels, prior=prior)
         item = dm._rollout_split("test")[0]
         from torch_ampn.fast_rollout import fast_path_supported
 
