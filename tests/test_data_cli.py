@@ -28,11 +28,14 @@ def test_generate_is_resumable_and_replaces_broken_files(tmp_path, monkeypatch):
     assert not torch.equal(trajs[0].gripper_force, trajs[1].gripper_force)
     assert (tmp_path / "dataset.json").exists()
 
+    spec_written = (tmp_path / "dataset.json").stat().st_mtime_ns
     calls = []
     real = dataset_module._simulate_chunk
     monkeypatch.setattr(dataset_module, "_simulate_chunk", lambda job: calls.append(job[1]) or real(job))
     generate_dataset(tmp_path, 2, 1, 1, workers=1, batch=2, compile=False, progress=False, config=TINY)
     assert calls == []  # everything exists: nothing simulated again
+    # ... and nothing written: processes sharing a complete folder do not race on dataset.json
+    assert (tmp_path / "dataset.json").stat().st_mtime_ns == spec_written
     paths[1].write_bytes(b"truncated")
     kept = paths[0].stat().st_mtime_ns
     generate_dataset(tmp_path, 2, 1, 1, workers=1, batch=2, compile=False, progress=False, config=TINY)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from torch_ampn.data.io import atomic_write_text
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.family import PartFamily, part_config, sample_part
@@ -195,14 +196,13 @@ def generate_dataset(
         family.validate()
         spec["family"] = family.to_dict()
     spec = json.loads(json.dumps(spec))
-    if spec_path.exists():
-        old = json.loads(spec_path.read_text())
-        if old.get("simulator") != spec["simulator"] or old.get("family") != spec.get("family"):
-            what = "simulator settings" if old.get("simulator") != spec["simulator"] else "family of parts"
-            raise ValueError(f"{spec_path}: the folder holds a dataset made with another {what}")
-    tmp = spec_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(spec, indent=2))
-    os.replace(tmp, spec_path)
+    old = json.loads(spec_path.read_text()) if spec_path.exists() else None
+    made_with = (spec["simulator"], spec.get("family"))
+    if old is not None and (old.get("simulator"), old.get("family")) != made_with:
+        what = "simulator settings" if old.get("simulator") != spec["simulator"] else "family of parts"
+        raise ValueError(f"{spec_path}: the folder holds a dataset made with another {what}")
+    if old != spec:  # written once: processes that share a complete folder only read it
+        atomic_write_text(spec_path, json.dumps(spec, indent=2))
 
     wanted = [
         (split, SPLIT_SEED_OFFSET[split] + i)
