@@ -117,3 +117,19 @@ def test_lightning_save_last_alone_lags_behind(tmp_path):
     Lightning's ``save_last`` follows every validation again and the second callback can go."""
     callback = ModelCheckpoint(tmp_path, "best", monitor="val/rollout_rmse", save_last=True)
     assert checkpoint_steps([callback], tmp_path) == (2, 2)
+
+
+def test_the_main_jobs_configs_add_the_prior_to_the_quickstart(tmp_path, monkeypatch):
+    """scripts/quickstart.sh: quickstart.yaml, then quickstart_prior.yaml on top of it."""
+    monkeypatch.chdir(tmp_path)
+    names = ["quickstart.yaml", "quickstart_prior.yaml"]
+    args = [a for name in names for a in ("--config", str(CONFIGS / name))]
+    cli = main(args, run=False)
+    quick, extra = (yaml.safe_load((CONFIGS / name).read_text()) for name in names)
+    hp, dm = cli.model.hparams, cli.datamodule
+    assert hp.prior_features is True and hp.compile_network is False and dm.hparams.prior == "pod_gp"
+    assert cli.model.surrogate.prior_features
+    assert cli.trainer.max_steps == extra["trainer"]["max_steps"]
+    for key in ("hidden_channels", "num_levels", "contact_k", "pushforward"):
+        assert hp[key] == quick["model"][key]  # the rest is the quickstart's
+    assert dm.hparams.num_train == quick["data"]["num_train"]
