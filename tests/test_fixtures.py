@@ -1,5 +1,6 @@
 """The committed fixtures are what tests/make_fixtures.py makes today."""
 
+import inspect
 import json
 
 import pytest
@@ -61,8 +62,15 @@ def test_the_runs_fit_reproduces_the_committed_checkpoint(tiny_fit):
     committed = torch.load(TINY_CKPT, weights_only=True)
     assert made["global_step"] == committed["global_step"] == 6
     paths = {"output_dir", "data_dir"}  # where the fit ran
-    for key in ("hyper_parameters", "datamodule_hyper_parameters"):
-        assert {k: v for k, v in made[key].items() if k not in paths} == {
+    from torch_ampn.training import AMPNDataModule, AMPNLightningModule
+
+    classes = {"hyper_parameters": AMPNLightningModule, "datamodule_hyper_parameters": AMPNDataModule}
+    for key, cls in classes.items():
+        # options added after the fixture was written must be at their defaults (same behaviour)
+        defaults = {n: p.default for n, p in inspect.signature(cls).parameters.items()}
+        added = {k: v for k, v in made[key].items() if k not in committed[key]}
+        assert added == {k: defaults[k] for k in added}, key
+        assert {k: v for k, v in made[key].items() if k not in paths | added.keys()} == {
             k: v for k, v in committed[key].items() if k not in paths
         }, key
     assert made["state_dict"].keys() == committed["state_dict"].keys()
