@@ -10,6 +10,7 @@ from torch_ampn.baselines import (
     MeanTrajectory,
     NearestSetting,
     PODRegression,
+    fit_setting_baselines,
     process_settings,
     rollout_mse,
     setting_effect_r2,
@@ -118,6 +119,17 @@ def test_pod_gp_beats_the_mean_and_the_nearest_setting_between_training_settings
     assert mse["gp"] < mse["nearest"] and mse["gp"] < mse["mean"]
     assert setting_effect_r2(mse["gp"], mse["mean"]) > 0.5
     assert setting_effect_r2(mse["mean"], mse["mean"]) == 0.0
+
+
+def test_a_baseline_fitted_before_is_reused_and_the_others_are_fitted():
+    """The data module's prior (fitted once) is not fitted again for the test report."""
+    prior = PODRegression("gp").fit(SMOOTH)
+    fitted, reason = fit_setting_baselines(SMOOTH, {"pod_gp": prior})
+    assert reason is None and fitted["pod_gp"] is prior
+    assert list(fitted) == ["mean_trajectory", "nearest_setting", "linear_settings", "pod_gp"]
+    torch.testing.assert_close(
+        fitted["mean_trajectory"].predict(SMOOTH[0]), MeanTrajectory().fit(SMOOTH).predict(SMOOTH[0])
+    )
 
 
 def test_a_fraction_of_the_variance_keeps_the_leading_components():

@@ -20,7 +20,7 @@ force (N).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Literal
 
 import numpy as np
@@ -367,8 +367,14 @@ def setting_effect_r2(mse: float, mse_mean_trajectory: float) -> float:
 
 def fit_setting_baselines(
     trajectories: Sequence[Trajectory],
+    fitted: Mapping[str, TrajectoryBaseline] | None = None,
 ) -> tuple[dict[str, TrajectoryBaseline], str | None]:
     """:func:`setting_baselines` fitted on ``trajectories``.
+
+    Args:
+        trajectories: The training trajectories.
+        fitted: Baselines already fitted on the same ``trajectories``, by name (e.g. a
+            surrogate's prior): used as they are instead of fitting them again.
 
     Returns:
         ``(baselines, None)``, or ``({}, reason)`` where they do not apply (fewer than 2
@@ -380,6 +386,9 @@ def fit_setting_baselines(
     try:
         for traj in trajectories:
             process_settings(traj)
-        return {name: b.fit(trajectories) for name, b in setting_baselines().items()}, None
+        fitted = dict(fitted or {})
+        return {
+            name: fitted.get(name) or b.fit(trajectories) for name, b in setting_baselines().items()
+        }, None
     except ValueError as err:
         return {}, str(err)

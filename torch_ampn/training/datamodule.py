@@ -268,6 +268,12 @@ class AMPNDataModule(L.LightningDataModule):
             self._prior_baseline = fitted_prior(self.hparams.prior, trajectories)
         return self._prior_baseline
 
+    def fitted_baselines(self) -> dict[str, Any]:
+        """The baselines this data module has fitted on the training split so far, by name (its prior)."""
+        if self._prior_baseline is None:
+            return {}
+        return {self.hparams.prior: self._prior_baseline}
+
     def training_trajectories(self) -> list[Trajectory]:
         """Every trajectory of the training split (for the setting-aware baselines of ``test``)."""
         if not split_files(self.data_dir, "train"):

@@ -473,7 +473,9 @@ class AMPNLightningModule(L.LightningModule):
         self._setting_baselines, reason = {}, "no training split to fit them on"
         datamodule = getattr(self.trainer, "datamodule", None)
         if hasattr(datamodule, "training_trajectories"):
-            self._setting_baselines, reason = fit_setting_baselines(datamodule.training_trajectories())
+            fitted = datamodule.fitted_baselines() if hasattr(datamodule, "fitted_baselines") else {}
+            trajectories = datamodule.training_trajectories()
+            self._setting_baselines, reason = fit_setting_baselines(trajectories, fitted)
         if reason is not None and self.trainer.is_global_zero:
             print(f"setting-aware baselines: not reported ({reason})")
 
