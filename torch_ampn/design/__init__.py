@@ -1,4 +1,10 @@
-"""Design studies: judge a formed part, search the process settings, check the choice with the simulator."""
+"""Design studies: judge a formed part, search the process settings, check the choice with the simulator.
+
+* :mod:`~torch_ampn.design.measures`: wrinkles, draw-in, shear, penetration of a formed part.
+* :mod:`~torch_ampn.design.search`: the settings space and a batched differential-evolution search.
+* :mod:`~torch_ampn.design.predictors`: a surrogate, a baseline or the simulator as the predictor.
+* :mod:`~torch_ampn.design.verify`: the simulated check of a choice.
+"""
 
 from torch_ampn.design.measures import (
     MEASURES,
@@ -10,14 +16,35 @@ from torch_ampn.design.measures import (
     shear_field,
     wrinkle_field,
 )
+from torch_ampn.design.predictors import baseline_predictor, simulator_predictor, surrogate_predictor
+from torch_ampn.design.search import (
+    Predictor,
+    SearchResult,
+    SettingsSpace,
+    search_settings,
+    settings_objective,
+    settings_trajectories,
+)
+from torch_ampn.design.verify import Verification, verify_choice
 
 __all__ = [
     "MEASURES",
+    "Predictor",
+    "SearchResult",
+    "SettingsSpace",
+    "Verification",
+    "baseline_predictor",
     "draw_in_field",
     "median_edge_length",
     "part_quality",
     "penetration_field",
     "ply_components",
+    "search_settings",
+    "settings_objective",
+    "settings_trajectories",
     "shear_field",
+    "simulator_predictor",
+    "surrogate_predictor",
+    "verify_choice",
     "wrinkle_field",
 ]

@@ -357,6 +357,29 @@ def _trajectory(
     )
 
 
+def explicit_process(
+    cfg: StampFormingConfig,
+    gripper_positions: Sequence[float] | Tensor,
+    gripper_forces: Sequence[float] | Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Checked ``(positions [G], forces [G])`` (float64) of one process setting of ``cfg``.
+
+    Positions are fractions of each gripper's free edge in ``[0, 1]``, forces in N (``>= 0``).
+    """
+    where = torch.as_tensor(gripper_positions, dtype=torch.float64).reshape(-1)
+    force = torch.as_tensor(gripper_forces, dtype=torch.float64).reshape(-1)
+    for name, value in (("gripper_positions", where), ("gripper_forces", force)):
+        if value.numel() != cfg.num_grippers:
+            raise ValueError(f"{name} needs {cfg.num_grippers} values, got {value.numel()}")
+        if not torch.isfinite(value).all():
+            raise ValueError(f"{name} must be finite, got {value.tolist()}")
+    if ((where < 0) | (where > 1)).any():
+        raise ValueError(f"gripper_positions are fractions of the edge in [0, 1], got {where.tolist()}")
+    if (force < 0).any():
+        raise ValueError(f"gripper_forces must be >= 0 N, got {force.tolist()}")
+    return where, force
+
+
 def process_trajectory(
     config: StampFormingConfig | None = None,
     gripper_positions: Sequence[float] | Tensor | None = None,
@@ -386,17 +409,7 @@ def process_trajectory(
     else:
         if gripper_positions is None or gripper_forces is None:
             raise ValueError("process_trajectory needs gripper_positions and gripper_forces (or a seed)")
-        where = torch.as_tensor(gripper_positions, dtype=torch.float64).reshape(-1)
-        force = torch.as_tensor(gripper_forces, dtype=torch.float64).reshape(-1)
-        for name, value in (("gripper_positions", where), ("gripper_forces", force)):
-            if value.numel() != cfg.num_grippers:
-                raise ValueError(f"{name} needs {cfg.num_grippers} values, got {value.numel()}")
-            if not torch.isfinite(value).all():
-                raise ValueError(f"{name} must be finite, got {value.tolist()}")
-        if ((where < 0) | (where > 1)).any():
-            raise ValueError(f"gripper_positions are fractions of the edge in [0, 1], got {where.tolist()}")
-        if (force < 0).any():
-            raise ValueError(f"gripper_forces must be >= 0 N, got {force.tolist()}")
+        where, force = explicit_process(cfg, gripper_positions, gripper_forces)
     mesh = build_mesh(cfg)
     n = int((mesh.node_type == NodeType.PLY).sum())
     nodes, anchors = _gripper_layout(cfg, mesh.pos[:n], n // cfg.num_plies, where)
@@ -425,13 +438,15 @@ def simulate_batch(
     compile: bool = False,
     device: torch.device | str = "cpu",
     perturbation: float = 0.0,
+    settings: Sequence[tuple[Sequence[float] | Tensor, Sequence[float] | Tensor]] | None = None,
 ) -> list[Trajectory]:
     """Simulate one process per seed, all at once, and return their trajectories.
 
     Gripper positions and forces are sampled from each seed (uniform along the free edges
-    and in ``gripper_force_range``). Eager, the same config and seed give the same trajectory
-    whatever the batch it is simulated in; with ``compile`` the last bits depend on the batch,
-    and the chaotic forming amplifies them (see ``docs/simulator.md``).
+    and in ``gripper_force_range``) unless ``settings`` gives them. Eager, the same config and
+    seed give the same trajectory whatever the batch it is simulated in; with ``compile`` the
+    last bits depend on the batch, and the chaotic forming amplifies them (see
+    ``docs/simulator.md``).
 
     Args:
         config: Settings; the coarse default when ``None``.
@@ -446,6 +461,9 @@ def simulate_batch(
             amount in ``[-perturbation, perturbation]`` mm (drawn from the seed; 0: none): the
             same settings from an imperceptibly different start, to measure how chaotic the
             forming is (:mod:`torch_ampn.sim.spread`). Recorded in ``meta["initial_perturbation"]``.
+        settings: Explicit ``(gripper_positions [G], gripper_forces [G])`` per trajectory
+            (edge fractions, N), e.g. the settings a design study chose; ``seeds`` then only
+            name the trajectories (default ``0 .. len(settings) - 1``).
 
     Returns:
         One :class:`~torch_ampn.data.Trajectory` per seed, each with ``num_steps + 1``
@@ -453,9 +471,17 @@ def simulate_batch(
     """
     cfg = config or StampFormingConfig()
     cfg.validate()
+    if settings is not None:
+        settings = list(settings)
+        seeds = range(len(settings)) if tuple(seeds) == (0,) else seeds
+        if len(seeds) != len(settings):
+            raise ValueError(f"got {len(seeds)} seeds for {len(settings)} settings")
     if len(seeds) == 0:
         raise ValueError("simulate_batch needs at least one seed")
-    processes = [sample_process(cfg, int(s)) for s in seeds]
+    if settings is None:
+        processes = [sample_process(cfg, int(s)) for s in seeds]
+    else:
+        processes = [explicit_process(cfg, where, force) for where, force in settings]
     mesh = build_mesh(cfg)
     model = LaminateModel(cfg, mesh, processes).to(device)
     step = model.step_function(compile)

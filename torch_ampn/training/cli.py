@@ -150,12 +150,19 @@ def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
 def entry_point() -> None:
     """Console script ``torch-ampn``: input errors end in one line on stderr (exit status 1), no traceback.
 
+    ``torch-ampn design ...`` runs :mod:`torch_ampn.design.cli`; everything else is the Lightning CLI.
+
     ``AMPN_TRACEBACK=1`` shows the traceback instead.
     """
     from torch_ampn.data.trajectory import TrajectoryFormatError
 
     try:
-        main()
+        if sys.argv[1:2] == ["design"]:  # the design study is not a Lightning subcommand
+            from torch_ampn.design.cli import main as design
+
+            design(sys.argv[2:])
+        else:
+            main()
     except (ValueError, FileNotFoundError, PermissionError, TrajectoryFormatError) as err:
         if os.environ.get("AMPN_TRACEBACK"):
             raise

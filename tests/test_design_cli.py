@@ -1,0 +1,58 @@
+"""`torch-ampn design` end to end on the tiny dataset: baseline and checkpoint, verify, bad input."""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torch_ampn.design.cli import main
+
+TINY_CKPT = Path(__file__).parent / "data" / "tiny.ckpt"
+BUDGET = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "2"]
+
+
+def test_a_baseline_design_study_with_verification(tiny_data, tmp_path):
+    out = tmp_path / "design"
+    report = main([str(tiny_data), "--baseline", "mean_trajectory", "--measure", "draw_in_mean",
+                   "--verify", "2", "--out", str(out), *BUDGET])  # fmt: skip
+    saved = json.loads((out / "design.json").read_text())
+    assert saved["best"] == report["best"] and saved["measure"] == "draw_in_mean"
+    assert report["search"]["evaluations"] == 2 * 2 * 4  # (maxiter + 1) generations x popsize x 4 settings
+    assert report["best"]["objective"] == pytest.approx(report["best"]["measures"]["draw_in_mean"])
+    assert min(t["objective"] for t in report["top"]) == report["best"]["objective"]
+    assert [t["xdmf"] for t in report["top"]] == ["top_1.xdmf", "top_2.xdmf"]
+    assert all((out / t["xdmf"]).is_file() for t in report["top"])
+    assert (out / "map.png").is_file() and (out / "verify.png").is_file()
+    v = report["verify"]
+    assert v["rank"] == 1 + sum(s < v["chosen_simulated"] for s in v["random_simulated"])
+    # the mean trajectory ignores the settings: the same predicted draw-in for all, no rank correlation
+    assert np.ptp(v["random_predicted"] + [v["chosen_predicted"]]) < 1e-9 and v["spearman"] is None
+    assert report["cost"]["simulator_seconds_per_setting"] > 0
+
+
+@pytest.mark.xdist_group("tiny_fit")
+def test_a_checkpoint_design_study(tiny_data, tmp_path):
+    report = main([str(tiny_data), "--checkpoint", str(TINY_CKPT), "--no-compile", "--measure",
+                   "wrinkle_rms=1", "shear_max=0.01", "--out", str(tmp_path), *BUDGET])  # fmt: skip
+    best = report["best"]
+    weighted = best["measures"]["wrinkle_rms"] + 0.01 * best["measures"]["shear_max"]
+    assert best["objective"] == pytest.approx(weighted)
+    assert report["predictor"].startswith("surrogate")
+
+
+def test_bad_input_ends_in_one_line(tiny_data, tmp_path, monkeypatch, capsys):
+    from torch_ampn.training.cli import entry_point
+
+    for args, message in [
+        (["--baseline", "pod_gp", "--measure", "smoothness"], "--measure: unknown ['smoothness']"),
+        (["--checkpoint", str(tmp_path / "none.ckpt")], "no such checkpoint"),
+        (["--baseline", "pod_gp", "--map", "force_0", "force_0"], "--map needs two different names"),
+    ]:
+        monkeypatch.setattr(
+            sys, "argv", ["torch-ampn", "design", str(tiny_data), "--out", str(tmp_path), *args]
+        )
+        with pytest.raises(SystemExit) as exit_:
+            entry_point()
+        assert message in str(exit_.value) and "\n" not in str(exit_.value)

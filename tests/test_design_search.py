@@ -1,0 +1,88 @@
+"""Design search: the known optimum of an analytic stand-in, the settings space, verification end to end."""
+
+import numpy as np
+import pytest
+import torch
+
+from torch_ampn.design import (
+    SettingsSpace,
+    baseline_predictor,
+    search_settings,
+    settings_objective,
+    settings_trajectories,
+    simulator_predictor,
+    verify_choice,
+)
+from torch_ampn.sim import simulate_batch
+from torch_ampn.sim.simulate import sample_process
+
+
+def test_the_search_finds_the_optimum_of_an_analytic_stand_in():
+    space = SettingsSpace(2, (0.15, 0.85), (0.0, 100.0))
+    target = np.array([0.3, 0.7, 80.0, 12.0])
+    scale = np.array([0.7, 0.7, 100.0, 100.0])
+    calls = []
+
+    def objective(x):  # [M, 4] -> [M], a bowl with its minimum at `target`, plus a ripple
+        calls.append(len(x))
+        z = (x - target) / scale
+        return (z**2).sum(1) + 0.01 * (1 - np.cos(8 * np.pi * z)).sum(1)
+
+    result = search_settings(objective, space.bounds, maxiter=40, popsize=10, seed=0)
+    assert len(calls) == 41 and set(calls) == {40}  # one batched call per generation
+    assert len(result.values) == sum(calls) and result.history == sorted(result.history, reverse=True)
+    assert np.all(np.abs(result.best - target) / scale < 0.02)
+    assert result.best_value == pytest.approx(float(objective(result.best[None])[0]))
+    top, values = result.top(3)
+    assert np.array_equal(top[0], result.best) and np.all(np.diff(values) >= 0)
+
+
+def test_the_settings_space_of_a_config(small_sim):
+    space = SettingsSpace.from_config(small_sim)
+    assert space.names == ["position_0", "position_1", "force_0", "force_1"]
+    x = space.sample(50, seed=3)
+    lo, hi = np.array(space.bounds).T
+    assert x.shape == (50, 4) and np.all((x >= lo) & (x <= hi))
+    assert space.split(x[:1]) == [(x[0, :2].tolist(), x[0, 2:].tolist())]
+    with pytest.raises(ValueError, match="need 4 values each"):
+        space.split(np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="measure must be among"):
+        settings_objective(lambda trajs: [], small_sim, "smoothness")
+
+
+def test_explicit_settings_simulate_as_their_seed_does(small_sim):
+    where, force = sample_process(small_sim, 7)
+    by_seed = simulate_batch(small_sim, [7])[0]
+    by_settings = simulate_batch(small_sim, settings=[(where, force)])[0]
+    assert torch.equal(by_seed.pos, by_settings.pos)
+    assert by_settings.meta["gripper_edge_fraction"] == where.tolist()
+    with pytest.raises(ValueError, match="gripper_forces must be >= 0 N"):
+        simulate_batch(small_sim, settings=[(where, [-1.0, 2.0])])
+
+
+def test_verify_with_the_simulator_as_its_own_predictor(small_sim):
+    """Predicted == simulated (eager, deterministic): Spearman 1, the rank counted by hand."""
+    chosen = np.array([0.5, 0.5, 50.0, 50.0])
+    check = verify_choice(
+        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2
+    )
+    assert check.chosen_predicted == check.chosen_simulated
+    np.testing.assert_array_equal(check.random_predicted, check.random_simulated)
+    assert check.spearman == pytest.approx(1.0)
+    assert check.rank == 1 + int((check.random_simulated < check.chosen_simulated).sum())
+    assert check.to_dict()["percentile"] == (check.rank - 1) / 4
+    with pytest.raises(ValueError, match="at least 2 random settings"):
+        verify_choice(small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=1)
+
+
+def test_a_baseline_predictor_gives_the_last_state(small_runs, small_sim):
+    from torch_ampn.baselines import MeanTrajectory
+
+    mean = MeanTrajectory().fit(small_runs)
+    trajs = settings_trajectories(
+        small_sim, SettingsSpace.from_config(small_sim), np.array([[0.4, 0.6, 10.0, 90.0]])
+    )
+    (predicted,) = baseline_predictor(mean)(trajs)
+    torch.testing.assert_close(predicted, mean.predict(trajs[0]))
+    value = settings_objective(baseline_predictor(mean), small_sim, {"draw_in_mean": 2.0, "shear_max": 0.5})
+    assert value(np.array([[0.4, 0.6, 10.0, 90.0]])).shape == (1,)

@@ -1,0 +1,264 @@
+"""``torch-ampn design``: search the process settings of a dataset's part with a predictor.
+
+    torch-ampn design data/settings --baseline pod_gp --measure wrinkle_rms --verify 16
+    torch-ampn design data/settings --checkpoint best.ckpt --measure draw_in_mean=1 shear_max=0.1
+
+The predictor is a trained surrogate (``--checkpoint``) or a setting-aware baseline fitted on
+the dataset's training split (``--baseline``). Writes to ``--out``: ``design.json`` (the best
+settings, their predicted measures, the top-k, the search's history and cost, the verification),
+``map.png`` (the measure over two settings, the others at the best), ``top_<k>.xdmf`` (the
+top-k predicted rollouts) and, with ``--verify``, ``verify.png`` (predicted against simulated).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _measure(values: list[str]) -> str | dict[str, float]:
+    """``["a"]`` -> ``"a"``; ``["a=1", "b=0.5"]`` -> ``{"a": 1, "b": 0.5}``."""
+    if len(values) == 1 and "=" not in values[0]:
+        return values[0]
+    out = {}
+    for v in values:
+        name, _, weight = v.partition("=")
+        try:
+            out[name] = float(weight or 1.0)
+        except ValueError:
+            raise ValueError(f"--measure {v!r}: the weight after '=' must be a number") from None
+    return out
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2))
+    os.replace(tmp, path)
+
+
+def build_predictor(args: argparse.Namespace) -> tuple[Any, str]:
+    """The predictor the arguments name, and its description."""
+    import torch
+
+    from torch_ampn.design.predictors import baseline_predictor, surrogate_predictor
+    from torch_ampn.training import AMPNDataModule
+
+    if args.baseline:
+        from torch_ampn.baselines import fitted_prior
+
+        dm = AMPNDataModule(str(args.data_dir), generate=False)
+        trajectories = dm.training_trajectories()
+        if len(trajectories) < 2:
+            raise FileNotFoundError(
+                f"{args.data_dir / 'train'}: --baseline needs at least 2 training trajectories"
+            )
+        return baseline_predictor(fitted_prior(args.baseline, trajectories)), f"baseline {args.baseline}"
+    from torch_ampn.training import AMPNLightningModule
+
+    if not args.checkpoint.is_file():
+        raise FileNotFoundError(f"{args.checkpoint}: no such checkpoint")
+    module = AMPNLightningModule.load_from_checkpoint(args.checkpoint, map_location="cpu").eval()
+    saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False).get(
+        "datamodule_hyper_parameters", {}
+    )
+    keep = ("prior", "prior_folds", "min_coarse_nodes", "contact_radius", "contact_k")
+    dm = AMPNDataModule(
+        str(args.data_dir), generate=False, max_levels=module.hparams.num_levels,
+        **{k: saved[k] for k in keep if k in saved},
+    )  # fmt: skip
+    template = settings_template(args)
+    hierarchy = dm.hierarchies(template)
+    prior = dm.prior_baseline() if getattr(module.surrogate, "prior_features", False) else None
+    predict = surrogate_predictor(module.surrogate, hierarchy, prior, compile=not args.no_compile)
+    return predict, f"surrogate {args.checkpoint}"
+
+
+def settings_template(args: argparse.Namespace):
+    """A trajectory of the dataset's process (the mesh every setting shares)."""
+    from torch_ampn.sim import process_trajectory
+    from torch_ampn.training import AMPNDataModule
+
+    return process_trajectory(AMPNDataModule(str(args.data_dir), generate=False).simulator_config(), seed=0)
+
+
+def parameter_map(objective, space, best: np.ndarray, axes: tuple[int, int], points: int) -> dict:
+    """The objective on a ``points x points`` grid of two settings, the others at ``best``."""
+    lo, hi = np.array(space.bounds).T
+    a, b = (np.linspace(lo[i], hi[i], points) for i in axes)
+    grid = np.repeat(best[None], points * points, 0)
+    ga, gb = np.meshgrid(a, b, indexing="ij")
+    grid[:, axes[0]], grid[:, axes[1]] = ga.ravel(), gb.ravel()
+    return {
+        "axes": [space.names[i] for i in axes],
+        "a": a,
+        "b": b,
+        "values": objective(grid).reshape(points, points),
+    }
+
+
+def plot_map(path: Path, grid: dict, best: np.ndarray, axes: tuple[int, int], label: str) -> None:
+    """Contours of :func:`parameter_map`'s grid, the best setting marked."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    c = ax.contourf(grid["a"], grid["b"], grid["values"].T, levels=16, cmap="viridis")
+    fig.colorbar(c, ax=ax, label=label)
+    ax.plot(best[axes[0]], best[axes[1]], "r*", ms=14, label="best")
+    ax.set_xlabel(grid["axes"][0])
+    ax.set_ylabel(grid["axes"][1])
+    ax.legend(loc="upper right")
+    ax.set_title("predicted measure, other settings at the best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_verify(path: Path, check, label: str) -> None:
+    """Predicted against simulated measure of the random settings and the chosen one."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.8, 4.5))
+    ax.scatter(check.random_simulated, check.random_predicted, s=18, label="random settings")
+    ax.scatter([check.chosen_simulated], [check.chosen_predicted], c="r", marker="*", s=160, label="chosen")
+    lim = [
+        min(check.random_simulated.min(), check.random_predicted.min(), check.chosen_simulated),
+        max(check.random_simulated.max(), check.random_predicted.max(), check.chosen_simulated),
+    ]
+    ax.plot(lim, lim, "k--", lw=0.8)
+    ax.set_xlabel(f"simulated {label}")
+    ax.set_ylabel(f"predicted {label}")
+    ax.set_title(
+        f"Spearman {check.spearman:.2f}, chosen ranks {check.rank} of {len(check.random_simulated) + 1}"
+    )
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> dict:
+    """The design study the arguments describe; returns what ``design.json`` holds."""
+    from torch_ampn.data.meshio_io import export_xdmf
+    from torch_ampn.design.measures import MEASURES, part_quality
+    from torch_ampn.design.search import (
+        SettingsSpace,
+        search_settings,
+        settings_objective,
+        settings_trajectories,
+    )
+    from torch_ampn.design.verify import verify_choice
+    from torch_ampn.training import AMPNDataModule
+
+    measure = _measure(args.measure)
+    names = [measure] if isinstance(measure, str) else list(measure)
+    unknown = [n for n in names if n not in MEASURES]
+    if unknown:
+        raise ValueError(f"--measure: unknown {unknown}; choose from {sorted(MEASURES)}")
+    cfg = AMPNDataModule(str(args.data_dir), generate=False).simulator_config()
+    space = SettingsSpace.from_config(cfg)
+    axes = tuple(space.names.index(n) if n in space.names else -1 for n in args.map)
+    if len(axes) != 2 or -1 in axes or axes[0] == axes[1]:
+        raise ValueError(f"--map needs two different names of {space.names}, got {args.map}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    predict, described = build_predictor(args)
+    objective = settings_objective(predict, cfg, measure, args.wrinkle_radius)
+    start = time.perf_counter()
+    result = search_settings(objective, space.bounds, args.maxiter, args.popsize, args.seed, progress=True)
+    search_seconds = time.perf_counter() - start
+    top_x, top_values = result.top(args.top)
+    top_trajs = settings_trajectories(cfg, space, top_x)
+    rollouts = predict(top_trajs)
+    top = []
+    for k, (x, value, traj, pos) in enumerate(zip(top_x, top_values, top_trajs, rollouts, strict=True)):
+        path = export_xdmf(traj, args.out / f"top_{k + 1}.xdmf", pos)
+        quality = part_quality(traj, pos[-1], args.wrinkle_radius)
+        top.append({"settings": dict(zip(space.names, x.tolist(), strict=True)), "objective": float(value),
+                    "measures": quality, "xdmf": path.name})  # fmt: skip
+    start = time.perf_counter()
+    grid = parameter_map(objective, space, result.best, axes, args.map_points)
+    map_seconds = time.perf_counter() - start
+    label = measure if isinstance(measure, str) else "weighted measure"
+    plot_map(args.out / "map.png", grid, result.best, axes, label)
+    report: dict[str, Any] = {
+        "data_dir": str(args.data_dir),
+        "predictor": described,
+        "measure": measure,
+        "units": {n: MEASURES[n][0] for n in names},
+        "best": top[0],
+        "top": top,
+        "search": {"evaluations": int(len(result.values)), "generations": result.generations,
+                   "seconds": search_seconds, "seconds_per_setting": search_seconds / len(result.values),
+                   "history": result.history, "maxiter": args.maxiter, "popsize": args.popsize,
+                   "seed": args.seed},
+        "map": {"axes": grid["axes"], "points": args.map_points, "seconds": map_seconds},
+    }  # fmt: skip
+    if args.verify:
+        check = verify_choice(cfg, result.best, predict, measure, args.verify, args.seed + 1,
+                              compile=not args.no_compile, wrinkle_radius=args.wrinkle_radius)  # fmt: skip
+        plot_verify(args.out / "verify.png", check, label)
+        report["verify"] = check.to_dict()
+        per_sim = check.simulate_seconds / (args.verify + 1)
+        report["cost"] = {
+            "search_seconds": search_seconds,
+            "simulator_seconds_per_setting": per_sim,
+            "search_over_simulating_the_random_settings": search_seconds / (per_sim * args.verify),
+        }
+    _write_json(args.out / "design.json", report)
+    return report
+
+
+def parser() -> argparse.ArgumentParser:
+    """The arguments of ``torch-ampn design``."""
+    p = argparse.ArgumentParser(
+        prog="torch-ampn design", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "data_dir", type=Path, help="dataset folder (its process, and its training split for baselines)"
+    )
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--checkpoint", type=Path, help="a trained surrogate's checkpoint")
+    which.add_argument(
+        "--baseline", choices=["mean_trajectory", "nearest_setting", "linear_settings", "pod_gp"],
+        help="a setting-aware baseline fitted on the training split",
+    )  # fmt: skip
+    p.add_argument(
+        "--measure", nargs="+", default=["wrinkle_rms"], help="NAME or NAME=WEIGHT ... (minimised)"
+    )
+    p.add_argument("--maxiter", type=int, default=15, help="generations of differential evolution")
+    p.add_argument("--popsize", type=int, default=6, help="population per setting coordinate")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--top", type=int, default=3, help="best settings written as XDMF rollouts")
+    p.add_argument("--map", nargs=2, default=["position_0", "force_0"], metavar=("X", "Y"))
+    p.add_argument("--map-points", type=int, default=9)
+    p.add_argument(
+        "--verify", type=int, default=0, metavar="N", help="simulate the choice and N random settings"
+    )
+    p.add_argument("--wrinkle-radius", type=float, default=None, help="mm (default: 3 ply edge lengths)")
+    p.add_argument("--no-compile", action="store_true", help="run the surrogate and the simulator eagerly")
+    p.add_argument("--out", type=Path, default=Path("outputs/design"))
+    return p
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Parse ``argv`` and run the design study; prints a short summary."""
+    args = parser().parse_args(argv)
+    report = run(args)
+    best = report["best"]
+    shown = ", ".join(f"{k} {v:.3g}" for k, v in best["settings"].items())
+    print(f"best settings: {shown}; objective {best['objective']:.4g}")
+    print(f"search: {report['search']['evaluations']} settings in {report['search']['seconds']:.1f} s")
+    if "verify" in report:
+        v = report["verify"]
+        rho = "undefined (constant)" if v["spearman"] is None else f"{v['spearman']:.2f}"
+        print(
+            f"verify: simulated, the choice ranks {v['rank']} of {len(v['random_simulated']) + 1}; "
+            f"Spearman {rho} over {len(v['random_simulated'])} random settings"
+        )
+    print(f"wrote {args.out / 'design.json'}")
+    return report

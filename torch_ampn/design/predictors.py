@@ -1,0 +1,103 @@
+"""Predictors for design studies: the forming of a batch of process settings.
+
+Each returns a :data:`~torch_ampn.design.search.Predictor`: a function of setting trajectories
+(:func:`~torch_ampn.design.search.settings_trajectories`) to their rollouts ``[T + 1, N, 3]``.
+
+* :func:`surrogate_predictor`: a trained :class:`~torch_ampn.nn.AMPNSurrogate`, batched on the
+  fast path where it applies, with its prior (a fitted baseline) where it has one.
+* :func:`baseline_predictor`: a fitted setting-aware baseline (e.g. POD + GP).
+* :func:`simulator_predictor`: the embedded simulator, the reference a choice is checked against.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.design.search import Predictor
+from torch_ampn.sim.config import StampFormingConfig
+
+
+def baseline_predictor(baseline: Any) -> Predictor:
+    """A fitted baseline's ``predict(traj)`` ``[T + 1, N, 3]``."""
+
+    def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
+        return [baseline.predict(traj) for traj in trajs]
+
+    return predict
+
+
+def simulator_predictor(cfg: StampFormingConfig, compile: bool = False, batch_size: int = 16) -> Predictor:
+    """The embedded simulator for each trajectory's recorded settings (``batch_size`` at a time).
+
+    Reads the gripper settings from ``meta["gripper_edge_fraction"]`` and ``gripper_force``.
+    """
+    from torch_ampn.sim import simulate_batch
+
+    def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
+        settings = [(t.meta["gripper_edge_fraction"], t.gripper_force.tolist()) for t in trajs]
+        out: list[Tensor] = []
+        for i in range(0, len(settings), batch_size):
+            part = settings[i : i + batch_size]
+            out += [t.pos for t in simulate_batch(cfg, settings=part, compile=compile)]
+        return out
+
+    return predict
+
+
+def surrogate_predictor(
+    surrogate: Any,
+    hierarchy: Any,
+    prior: Any = None,
+    batch_size: int = 8,
+    compile: bool = True,
+    device: torch.device | str | None = None,
+    seed: int = 0,
+) -> Predictor:
+    """A trained surrogate rolled out over each setting (its noise seeded ``seed`` for every setting).
+
+    Args:
+        surrogate: The :class:`~torch_ampn.nn.AMPNSurrogate`.
+        hierarchy: Its mesh's hierarchy.
+        prior: The fitted baseline a surrogate with ``prior_features`` reads
+            (``AMPNDataModule.prior_baseline()``); required for such a surrogate.
+        batch_size: Settings per fast-path batch.
+        compile: Compile the fast path.
+        device: Where to run.
+        seed: Seed of each rollout's noise generator.
+    """
+    from torch_ampn.fast_rollout import fast_path_supported, rollout_settings
+    from torch_ampn.rollout import rollout
+
+    needs_prior = bool(getattr(surrogate, "prior_features", False))
+    if needs_prior and prior is None:
+        raise ValueError("this surrogate reads a prior (prior_features): give the fitted prior baseline")
+    batched = fast_path_supported(surrogate) is None
+
+    def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
+        trajs = list(trajs)
+        if needs_prior:
+            for traj in trajs:
+                traj.prior = prior.predict(traj)
+        dev = device or "cpu"
+        gens = [torch.Generator(device=dev).manual_seed(seed) for _ in trajs]
+        if batched:
+            preds = rollout_settings(surrogate, trajs, hierarchy, batch_size, gens, compile, device)
+        else:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="no fast rollout")
+                preds = [
+                    rollout(surrogate, t, hierarchy, device=device, fast=True, generator=g, compile=compile)
+                    for t, g in zip(trajs, gens, strict=True)
+                ]
+        return list(preds)
+
+    return predict
+
+
+__all__ = ["baseline_predictor", "simulator_predictor", "surrogate_predictor"]
