@@ -9,6 +9,7 @@ from torch_ampn.data import Trajectory
 from torch_ampn.data.mesh import rectangle_mesh
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.design import (
+    WrinkleOperator,
     draw_in_field,
     median_edge_length,
     part_quality,
@@ -170,3 +171,24 @@ def test_wrong_positions_and_a_tiny_radius_are_refused():
         wrinkle_field(traj, traj.pos)
     with pytest.raises(ValueError, match="fewer than 6 nodes"):
         wrinkle_field(traj, traj.pos[0], radius=1.0)
+
+
+def test_one_wrinkle_operator_judges_many_positions_of_its_part():
+    """Built once from the reference, it equals a fresh fit for any positions; another part is refused."""
+    traj = _part(n=12)
+    operator = WrinkleOperator(traj, radius=15.0)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        pos = traj.pos[0].double() + 0.3 * torch.randn(traj.num_nodes, 3, generator=g, dtype=torch.float64)
+        # reference: the same quadratic fit solved directly, node by node, in float64
+        ref = traj.pos[0].double()
+        expected = torch.zeros(traj.num_nodes, dtype=torch.float64)
+        for i in range(traj.num_nodes):
+            near = ((ref - ref[i]).norm(dim=1) <= 15.0).nonzero().squeeze(1)
+            du, dv = ((ref[near, 0] - ref[i, 0]) / 15.0), ((ref[near, 1] - ref[i, 1]) / 15.0)
+            basis = torch.stack([torch.ones_like(du), du, dv, du * du, du * dv, dv * dv], 1)
+            coef = torch.linalg.lstsq(basis, pos[near]).solution  # [6, 3]
+            n = torch.linalg.cross(coef[1], coef[2])
+            expected[i] = ((pos[i] - coef[0]) * n / n.norm()).sum()
+        torch.testing.assert_close(operator(pos), expected, atol=1e-9, rtol=0)
+    assert operator.applies_to(traj) and not operator.applies_to(_part(n=10))

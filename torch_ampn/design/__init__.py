@@ -8,6 +8,7 @@
 
 from torch_ampn.design.measures import (
     MEASURES,
+    WrinkleOperator,
     draw_in_field,
     median_edge_length,
     part_quality,
@@ -33,6 +34,7 @@ __all__ = [
     "SearchResult",
     "SettingsSpace",
     "Verification",
+    "WrinkleOperator",
     "baseline_predictor",
     "draw_in_field",
     "median_edge_length",

@@ -199,8 +199,10 @@ def run(args: argparse.Namespace) -> dict:
         "map": {"axes": grid["axes"], "points": args.map_points, "seconds": map_seconds},
     }  # fmt: skip
     if args.verify:
-        check = verify_choice(cfg, result.best, predict, measure, args.verify, args.seed + 1,
-                              compile=not args.no_compile, wrinkle_radius=args.wrinkle_radius)  # fmt: skip
+        check = verify_choice(
+            cfg, result.best, predict, measure, args.verify, args.seed + 1,
+            compile=not args.no_compile, wrinkle_radius=args.wrinkle_radius, progress=True,
+        )  # fmt: skip
         plot_verify(args.out / "verify.png", check, label)
         report["verify"] = check.to_dict()
         per_sim = check.simulate_seconds / (args.verify + 1)

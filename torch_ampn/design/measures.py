@@ -68,67 +68,118 @@ def median_edge_length(traj: Trajectory) -> float:
     return float(torch.cat(lengths).median())
 
 
-def _local_frames(ref: Tensor, weights: Tensor) -> Tensor:
-    """Orthonormal frames ``[n, 3, 3]`` (tangent 1, tangent 2, normal) of weighted neighbourhoods.
+def _local_frames(ref: Tensor, weights: Tensor, up: Tensor) -> Tensor:
+    """Right-handed orthonormal frames ``[n, 3, 3]`` (tangent 1, tangent 2, normal) of neighbourhoods.
 
-    ``ref`` ``[m, 3]`` reference positions, ``weights`` ``[n, m]`` (0/1 neighbourhood of each node).
+    ``ref`` ``[m, 3]`` reference positions, ``weights`` ``[n, m]`` (0/1 neighbourhood of each
+    node), ``up`` ``[3]``: the side the normals point to (the ply's mean cell normal), so that
+    the waviness has one sign convention over the ply.
     """
     count = weights.sum(1, keepdim=True)  # [n, 1]
     centre = weights @ ref / count  # [n, 3]
     d = ref.unsqueeze(0) - centre.unsqueeze(1)  # [n, m, 3]
     cov = torch.einsum("nm,nmi,nmj->nij", weights, d, d)  # [n, 3, 3]
     _, vectors = torch.linalg.eigh(cov)  # ascending: the normal is the smallest
-    return vectors.flip(-1).transpose(1, 2)  # rows: t1, t2, normal
+    normal = vectors[..., 0] * torch.where((vectors[..., 0] @ up) < 0, -1.0, 1.0).unsqueeze(1).to(ref.dtype)
+    t1 = vectors[..., 2]
+    return torch.stack([t1, torch.linalg.cross(normal, t1), normal], 1)
 
 
-def wrinkle_field(traj: Trajectory, pos: Tensor, radius: float | None = None, chunk: int = 256) -> Tensor:
-    """Signed out-of-plane waviness of every ply node (mm; 0 at the tools' nodes).
+def _mean_cell_normal(ref: Tensor, cells: Tensor) -> Tensor:
+    """The sum of a mesh's cell normals ``[3]`` (from the corner winding), normalised."""
+    q = ref[cells]
+    n = torch.linalg.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]).sum(0)
+    return n / n.norm().clamp_min(1e-12)
 
-    Around each ply node, the ply's nodes within ``radius`` of it in the reference state
-    (``traj.pos[0]``) are mapped to the node's reference tangent plane ``(u, v)``, and their
-    positions ``pos`` are fitted by a quadratic surface ``x(u, v)`` (least squares, per
-    coordinate). The waviness is ``(pos_i - x(0, 0)) . n``, with ``n`` the fitted surface's
-    normal at the node.
+
+class WrinkleOperator:
+    """The linear fits of :func:`wrinkle_field` for one part, built once from its reference state.
+
+    Around each ply node ``i``, the ply's nodes within ``radius`` of it in the reference state
+    (``traj.pos[0]``) are mapped to the node's reference tangent plane ``(u, v)``; the least-
+    squares quadratic ``x(u, v)`` through positions ``Y`` of those nodes has coefficients
+    ``P_i Y`` with ``P_i = (Phi^T Phi)^+ Phi^T`` ``[6, K]``, which depends on the reference only.
+    Judging many settings of one part (a design study) then costs one product per call.
 
     Args:
         traj: The part (meshes, components, node types, reference state).
-        pos: Positions to judge ``[N, 3]``.
         radius: Neighbourhood radius in mm (default: 3 median ply edge lengths): waves up to
             about this wavelength count as wrinkles, longer ones as the part's shape.
-        chunk: Nodes fitted at a time (memory ``chunk x ply nodes``).
-
-    Returns:
-        ``[N]`` float64.
+        chunk: Nodes set up at a time (memory ``chunk x ply nodes``).
     """
-    x = _check_pos(traj, pos)
-    ref_all = traj.pos[0].double()
-    radius = 3.0 * median_edge_length(traj) if radius is None else float(radius)
-    if radius <= 0:
-        raise ValueError(f"radius must be > 0 mm, got {radius}")
-    out = torch.zeros(traj.num_nodes, dtype=torch.float64)
-    for c in ply_components(traj):
-        idx = (traj.component == c).nonzero().squeeze(1)
-        ref, cur = ref_all[idx], x[idx]  # [m, 3]
-        for start in range(0, idx.numel(), chunk):
-            rows = torch.arange(start, min(start + chunk, idx.numel()))
-            w = (torch.cdist(ref[rows], ref) <= radius).double()  # [n, m]
-            if bool((w.sum(1) < 6).any()):
-                raise ValueError(
-                    f"wrinkle radius {radius:g} mm holds fewer than 6 nodes of ply {traj.names[c]!r} "
-                    "around some node: choose a larger radius"
-                )
-            frames = _local_frames(ref, w)  # [n, 3, 3]
-            d = (ref.unsqueeze(0) - ref[rows].unsqueeze(1)) / radius  # [n, m, 3]
-            u = torch.einsum("nmi,ni->nm", d, frames[:, 0])
-            v = torch.einsum("nmi,ni->nm", d, frames[:, 1])
-            basis = torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v], -1)  # [n, m, 6]
-            a = torch.einsum("nm,nmi,nmj->nij", w, basis, basis)  # [n, 6, 6]
-            b = torch.einsum("nm,nmi,mk->nik", w, basis, cur)  # [n, 6, 3]
-            coef = torch.linalg.lstsq(a, b).solution  # [n, 6, 3]
-            normal = torch.linalg.cross(coef[:, 1], coef[:, 2])  # [n, 3]
-            normal = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-12)
-            out[idx[rows]] = ((cur[rows] - coef[:, 0]) * normal).sum(1)
-    return out
+
+    def __init__(self, traj: Trajectory, radius: float | None = None, chunk: int = 256) -> None:
+        self.radius = 3.0 * median_edge_length(traj) if radius is None else float(radius)
+        if self.radius <= 0:
+            raise ValueError(f"radius must be > 0 mm, got {self.radius}")
+        self.num_nodes = traj.num_nodes
+        self.reference = traj.pos[0].double().clone()
+        nodes, neighbours, operators = [], [], []
+        for c in ply_components(traj):
+            idx = (traj.component == c).nonzero().squeeze(1)
+            ref = self.reference[idx]  # [m, 3]
+            up = _mean_cell_normal(self.reference, traj.cells[c])
+            for start in range(0, idx.numel(), chunk):
+                rows = torch.arange(start, min(start + chunk, idx.numel()))
+                w = torch.cdist(ref[rows], ref) <= self.radius  # [n, m]
+                count = w.sum(1)
+                if bool((count < 6).any()):
+                    raise ValueError(
+                        f"wrinkle radius {self.radius:g} mm holds fewer than 6 nodes of ply "
+                        f"{traj.names[c]!r} around some node: choose a larger radius"
+                    )
+                frames = _local_frames(ref, w.double(), up)  # [n, 3, 3]
+                k = int(count.max())
+                # Padded neighbour lists [n, K] (padding: the node itself, with weight 0).
+                order = torch.sort(w.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :k]
+                valid = torch.gather(w, 1, order)  # [n, K]
+                nbr = torch.where(valid, order, rows[:, None])
+                d = (ref[nbr] - ref[rows].unsqueeze(1)) / self.radius  # [n, K, 3]
+                u = torch.einsum("nki,ni->nk", d, frames[:, 0])
+                v = torch.einsum("nki,ni->nk", d, frames[:, 1])
+                basis = torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v], -1)
+                basis = basis * valid.unsqueeze(-1)  # [n, K, 6]
+                gram = basis.transpose(1, 2) @ basis  # [n, 6, 6]
+                operators.append(torch.linalg.pinv(gram, hermitian=True) @ basis.transpose(1, 2))  # [n, 6, K]
+                nodes.append(idx[rows])
+                neighbours.append(idx[nbr])
+        if not nodes:
+            raise ValueError("the part has no ply component (no component of PLY nodes only)")
+        self.nodes = torch.cat(nodes)  # [M]
+        width = max(n.size(1) for n in neighbours)
+        self.neighbours = torch.cat(
+            [torch.nn.functional.pad(n, (0, width - n.size(1)), value=0) for n in neighbours]
+        )
+        self.operators = torch.cat([torch.nn.functional.pad(o, (0, width - o.size(2))) for o in operators])
+
+    def applies_to(self, traj: Trajectory) -> bool:
+        """Whether ``traj`` is the same part (same node count and reference state)."""
+        return traj.num_nodes == self.num_nodes and torch.equal(traj.pos[0].double(), self.reference)
+
+    def __call__(self, pos: Tensor) -> Tensor:
+        """Waviness ``[N]`` (float64; 0 at the tools' nodes) of positions ``pos`` ``[N, 3]``."""
+        if pos.shape != (self.num_nodes, 3):
+            raise ValueError(
+                f"pos must be [N, 3] = [{self.num_nodes}, 3] for this part, got {list(pos.shape)}"
+            )
+        x = pos.double()
+        coef = self.operators @ x[self.neighbours]  # [M, 6, 3]
+        normal = torch.linalg.cross(coef[:, 1], coef[:, 2])
+        normal = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        out = torch.zeros(self.num_nodes, dtype=torch.float64)
+        out[self.nodes] = ((x[self.nodes] - coef[:, 0]) * normal).sum(1)
+        return out
+
+
+def wrinkle_field(traj: Trajectory, pos: Tensor, radius: float | None = None) -> Tensor:
+    """Signed out-of-plane waviness of every ply node (mm; 0 at the tools' nodes), ``[N]`` float64.
+
+    The distance of each ply node at ``pos`` ``[N, 3]`` from the quadratic surface fitted to its
+    ply's nodes within ``radius`` of it (in the reference state), along that surface's normal;
+    see :class:`WrinkleOperator` (build one to judge many positions of one part).
+    """
+    _check_pos(traj, pos)
+    return WrinkleOperator(traj, radius)(pos)
 
 
 def _boundary_normals(ref: Tensor, cells: Tensor) -> tuple[Tensor, Tensor]:
@@ -279,9 +330,21 @@ def _vertex_normals(x: Tensor, ref: Tensor, cells: Tensor, ply_ref: Tensor) -> T
     return normal if float(torch.sign(towards).sum()) >= 0 else -normal
 
 
-def part_quality(traj: Trajectory, pos: Tensor, wrinkle_radius: float | None = None) -> dict[str, float]:
-    """The scalar measures of :data:`MEASURES` for positions ``pos`` ``[N, 3]`` of the part ``traj``."""
-    wrinkle = wrinkle_field(traj, pos, wrinkle_radius)[traj.node_type == NodeType.PLY]
+def part_quality(
+    traj: Trajectory,
+    pos: Tensor,
+    wrinkle_radius: float | None = None,
+    wrinkle: WrinkleOperator | None = None,
+) -> dict[str, float]:
+    """The scalar measures of :data:`MEASURES` for positions ``pos`` ``[N, 3]`` of the part ``traj``.
+
+    ``wrinkle``: a :class:`WrinkleOperator` of this part built before (else one is built with
+    ``wrinkle_radius``).
+    """
+    _check_pos(traj, pos)
+    if wrinkle is None or not wrinkle.applies_to(traj):
+        wrinkle = WrinkleOperator(traj, wrinkle_radius)
+    wrinkle = wrinkle(pos)[traj.node_type == NodeType.PLY]
     _, draw_in = draw_in_field(traj, pos)
     _, shear = shear_field(traj, pos)
     penetration = penetration_field(traj, pos)
@@ -298,6 +361,7 @@ def part_quality(traj: Trajectory, pos: Tensor, wrinkle_radius: float | None = N
 
 __all__ = [
     "MEASURES",
+    "WrinkleOperator",
     "draw_in_field",
     "median_edge_length",
     "part_quality",

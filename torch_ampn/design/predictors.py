@@ -32,7 +32,9 @@ def baseline_predictor(baseline: Any) -> Predictor:
     return predict
 
 
-def simulator_predictor(cfg: StampFormingConfig, compile: bool = False, batch_size: int = 16) -> Predictor:
+def simulator_predictor(
+    cfg: StampFormingConfig, compile: bool = False, batch_size: int = 16, progress: bool = False
+) -> Predictor:
     """The embedded simulator for each trajectory's recorded settings (``batch_size`` at a time).
 
     Reads the gripper settings from ``meta["gripper_edge_fraction"]`` and ``gripper_force``.
@@ -42,7 +44,12 @@ def simulator_predictor(cfg: StampFormingConfig, compile: bool = False, batch_si
     def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
         settings = [(t.meta["gripper_edge_fraction"], t.gripper_force.tolist()) for t in trajs]
         out: list[Tensor] = []
-        for i in range(0, len(settings), batch_size):
+        starts = range(0, len(settings), batch_size)
+        if progress:
+            from tqdm.auto import tqdm
+
+            starts = tqdm(starts, desc="simulate", unit="batch")
+        for i in starts:
             part = settings[i : i + batch_size]
             out += [t.pos for t in simulate_batch(cfg, settings=part, compile=compile)]
         return out

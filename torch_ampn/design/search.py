@@ -19,7 +19,7 @@ import numpy as np
 from torch import Tensor
 
 from torch_ampn.data.trajectory import Trajectory
-from torch_ampn.design.measures import MEASURES, part_quality
+from torch_ampn.design.measures import MEASURES, WrinkleOperator, part_quality
 from torch_ampn.sim.config import StampFormingConfig
 
 #: The rollout ``[T + 1, N, 3]`` (positions of every saved state) of each given setting trajectory.
@@ -98,13 +98,16 @@ def settings_objective(
     if unknown or not weights:
         raise ValueError(f"measure must be among {sorted(MEASURES)}, got {unknown or 'none'}")
     space = SettingsSpace.from_config(cfg)
+    operator: list[WrinkleOperator | None] = [None]
 
     def objective(x: np.ndarray) -> np.ndarray:
         trajs = settings_trajectories(cfg, space, x)
         rollouts = predict(trajs)
         values = []
         for traj, pos in zip(trajs, rollouts, strict=True):
-            q = part_quality(traj, pos[-1], wrinkle_radius)
+            if operator[0] is None or not operator[0].applies_to(traj):
+                operator[0] = WrinkleOperator(traj, wrinkle_radius)  # one per part: the settings share it
+            q = part_quality(traj, pos[-1], wrinkle=operator[0])
             values.append(sum(w * q[name] for name, w in weights.items()))
         return np.asarray(values, dtype=np.float64)
 

@@ -67,6 +67,7 @@ def verify_choice(
     seed: int = 1,
     compile: bool = False,
     wrinkle_radius: float | None = None,
+    progress: bool = False,
 ) -> Verification:
     """Simulate ``chosen`` and ``num_random`` random settings; compare with the predictor's measures.
 
@@ -79,6 +80,7 @@ def verify_choice(
         seed: Seed of the random settings.
         compile: Compile the simulator.
         wrinkle_radius: See :func:`~torch_ampn.design.measures.wrinkle_field`.
+        progress: Show a progress bar over the simulated batches.
     """
     from scipy.stats import spearmanr
 
@@ -90,7 +92,9 @@ def verify_choice(
     chosen = np.asarray(chosen, dtype=np.float64).reshape(-1)
     randoms = space.sample(num_random, seed)
     predicted = settings_objective(predict, cfg, measure, wrinkle_radius)
-    simulated = settings_objective(simulator_predictor(cfg, compile=compile), cfg, measure, wrinkle_radius)
+    simulated = settings_objective(
+        simulator_predictor(cfg, compile=compile, progress=progress), cfg, measure, wrinkle_radius
+    )
     start = time.perf_counter()
     pred = predicted(np.vstack([chosen, randoms]))
     predict_seconds = time.perf_counter() - start
