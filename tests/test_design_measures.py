@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torch_ampn.data import Trajectory
-from torch_ampn.data.mesh import rectangle_mesh
+from torch_ampn.data.mesh import MultiComponentMesh, rectangle_mesh
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.design import (
     WrinkleOperator,
@@ -24,32 +24,26 @@ SIZE = 60.0
 def _part(n: int = 24, cell_type: str = "triangle", fibre_deg: float = 0.0, die: bool = False) -> Trajectory:
     """One flat square ply ``SIZE`` mm wide of ``n x n`` cells at e3 = 0 (and a flat die 1 mm below)."""
     pos, cells = rectangle_mesh(n, n, (SIZE, SIZE), cell_type=cell_type, dtype=torch.float64)
-    parts = [(pos, cells, NodeType.PLY)]
+    parts = [("ply", pos, cells, NodeType.PLY)]
     if die:
         tool, tool_cells = rectangle_mesh(
             8, 8, (SIZE + 20, SIZE + 20), (-10.0, -10.0, -1.0), "quad", torch.float64
         )
-        parts.append((tool, tool_cells, NodeType.DIE))
-    all_pos, all_cells, comp, types, offset = [], [], [], [], 0
-    for c, (p, f, t) in enumerate(parts):
-        all_pos.append(p)
-        all_cells.append(f + offset)
-        comp.append(torch.full((p.size(0),), c))
-        types.append(torch.full((p.size(0),), int(t)))
-        offset += p.size(0)
-    pos0 = torch.cat(all_pos)
-    node_type = torch.cat(types)
-    fiber = torch.zeros_like(pos0)
+        parts.append(("die", tool, tool_cells, NodeType.DIE))
+    mesh = MultiComponentMesh.merge(parts)
+    fiber = torch.zeros_like(mesh.pos)
     angle = math.radians(fibre_deg)
-    fiber[node_type == NodeType.PLY] = torch.tensor([math.cos(angle), math.sin(angle), 0.0], dtype=pos0.dtype)
+    fiber[mesh.node_type == NodeType.PLY] = torch.tensor(
+        [math.cos(angle), math.sin(angle), 0.0], dtype=mesh.pos.dtype
+    )
     return Trajectory(
-        pos=pos0[None].float(),
+        pos=mesh.pos[None].float(),
         time=torch.zeros(1),
-        cells=all_cells,
-        component=torch.cat(comp),
-        node_type=node_type,
+        cells=mesh.cells,
+        component=mesh.component,
+        node_type=mesh.node_type,
         fiber=fiber.float(),
-        names=["ply", "die"][: len(parts)],
+        names=mesh.names,
         gripper_nodes=torch.zeros(0, 1, dtype=torch.long),
         gripper_anchor=torch.zeros(0, 3),
         gripper_force=torch.zeros(0),

@@ -388,7 +388,8 @@ def fit_setting_baselines(
             process_settings(traj)
         fitted = dict(fitted or {})
         return {
-            name: fitted.get(name) or b.fit(trajectories) for name, b in setting_baselines().items()
+            name: fitted[name] if name in fitted else b.fit(trajectories)
+            for name, b in setting_baselines().items()
         }, None
     except ValueError as err:
         return {}, str(err)

@@ -42,8 +42,8 @@ def _write_json(path: Path, payload: dict) -> None:
     os.replace(tmp, path)
 
 
-def build_predictor(args: argparse.Namespace) -> tuple[Any, str]:
-    """The predictor the arguments name, and its description."""
+def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
+    """The predictor the arguments name for the process ``cfg``, and its description."""
     import torch
 
     from torch_ampn.design.predictors import baseline_predictor, surrogate_predictor
@@ -72,19 +72,12 @@ def build_predictor(args: argparse.Namespace) -> tuple[Any, str]:
         str(args.data_dir), generate=False, max_levels=module.hparams.num_levels,
         **{k: saved[k] for k in keep if k in saved},
     )  # fmt: skip
-    template = settings_template(args)
-    hierarchy = dm.hierarchies(template)
+    from torch_ampn.sim import process_trajectory
+
+    hierarchy = dm.hierarchies(process_trajectory(cfg, seed=0))  # the mesh every setting shares
     prior = dm.prior_baseline() if getattr(module.surrogate, "prior_features", False) else None
     predict = surrogate_predictor(module.surrogate, hierarchy, prior, compile=not args.no_compile)
     return predict, f"surrogate {args.checkpoint}"
-
-
-def settings_template(args: argparse.Namespace):
-    """A trajectory of the dataset's process (the mesh every setting shares)."""
-    from torch_ampn.sim import process_trajectory
-    from torch_ampn.training import AMPNDataModule
-
-    return process_trajectory(AMPNDataModule(str(args.data_dir), generate=False).simulator_config(), seed=0)
 
 
 def parameter_map(objective, space, best: np.ndarray, axes: tuple[int, int], points: int) -> dict:
@@ -166,7 +159,7 @@ def run(args: argparse.Namespace) -> dict:
     if len(axes) != 2 or -1 in axes or axes[0] == axes[1]:
         raise ValueError(f"--map needs two different names of {space.names}, got {args.map}")
     args.out.mkdir(parents=True, exist_ok=True)
-    predict, described = build_predictor(args)
+    predict, described = build_predictor(args, cfg)
     objective = settings_objective(predict, cfg, measure, args.wrinkle_radius)
     start = time.perf_counter()
     result = search_settings(objective, space.bounds, args.maxiter, args.popsize, args.seed, progress=True)
