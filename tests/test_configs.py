@@ -128,6 +128,7 @@ def test_the_main_jobs_configs_add_the_prior_to_the_quickstart(tmp_path, monkeyp
     quick, extra = (yaml.safe_load((CONFIGS / name).read_text()) for name in names)
     hp, dm = cli.model.hparams, cli.datamodule
     assert hp.prior_features is True and hp.compile_network is False and dm.hparams.prior == "pod_gp"
+    assert hp.fast_rollout is False  # as the published result: nothing compiled after the fit
     assert cli.model.surrogate.prior_features
     assert cli.trainer.max_steps == extra["trainer"]["max_steps"]
     for key in ("hidden_channels", "num_levels", "contact_k", "pushforward"):

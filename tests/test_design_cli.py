@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torch_ampn.design import MEASURES
 from torch_ampn.design.cli import main
 
 TINY_CKPT = Path(__file__).parent / "data" / "tiny.ckpt"
@@ -16,7 +17,7 @@ BUDGET = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "2"]
 def test_a_baseline_design_study_with_verification(tiny_data, tmp_path):
     out = tmp_path / "design"
     report = main([str(tiny_data), "--baseline", "mean_trajectory", "--measure", "draw_in_mean",
-                   "--verify", "2", "--out", str(out), *BUDGET])  # fmt: skip
+                   "--verify", "2", "--repeat", "1e-6", "--out", str(out), *BUDGET])  # fmt: skip
     saved = json.loads((out / "design.json").read_text())
     assert saved["best"] == report["best"] and saved["measure"] == "draw_in_mean"
     assert report["search"]["evaluations"] == 2 * 2 * 4  # (maxiter + 1) generations x popsize x 4 settings
@@ -24,12 +25,16 @@ def test_a_baseline_design_study_with_verification(tiny_data, tmp_path):
     assert min(t["objective"] for t in report["top"]) == report["best"]["objective"]
     assert [t["xdmf"] for t in report["top"]] == ["top_1.xdmf", "top_2.xdmf"]
     assert all((out / t["xdmf"]).is_file() for t in report["top"])
-    assert (out / "map.png").is_file() and (out / "verify.png").is_file()
+    assert all((out / f).is_file() for f in ("map.png", "verify.png", "fields.png"))
     v = report["verify"]
     assert v["rank"] == 1 + sum(s < v["chosen_simulated"] for s in v["random_simulated"])
     # the mean trajectory ignores the settings: the same predicted draw-in for all, no rank correlation
     assert np.ptp(v["random_predicted"] + [v["chosen_predicted"]]) < 1e-9 and v["spearman"] is None
     assert report["cost"]["simulator_seconds_per_setting"] > 0
+    # every measure, the chosen setting first; the objective's Spearman is its measure's
+    assert v["simulated_measures"]["draw_in_mean"] == [v["chosen_simulated"], *v["random_simulated"]]
+    assert set(v["spearman_by_measure"]) == set(v["repeat_spearman_by_measure"]) == set(MEASURES)
+    assert v["repeat"] == 1e-6 and len(v["repeat_measures"]["wrinkle_rms"]) == 2
 
 
 @pytest.mark.xdist_group("tiny_fit")

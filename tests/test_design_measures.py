@@ -186,3 +186,27 @@ def test_one_wrinkle_operator_judges_many_positions_of_its_part():
             expected[i] = ((pos[i] - coef[0]) * n / n.norm()).sum()
         torch.testing.assert_close(operator(pos), expected, atol=1e-9, rtol=0)
     assert operator.applies_to(traj) and not operator.applies_to(_part(n=10))
+
+
+def test_measure_maps_place_each_field_on_its_ply(tmp_path):
+    """The fields behind the maps are the measures' own, on the right points; the figure is written."""
+    from torch_ampn.design.plots import field_of, measure_field, plot_measure_maps
+
+    traj = _part(n=12, die=True)
+    moved = _moved(traj, lambda x: x * torch.tensor([0.9, 1.0, 1.0], dtype=x.dtype))  # contraction along e1
+    ply = _ply(traj)
+    ((points, values),) = measure_field(traj, moved, "wrinkle")
+    torch.testing.assert_close(points, moved[ply])
+    torch.testing.assert_close(values, wrinkle_field(traj, moved)[ply])
+    ((points, values),) = measure_field(traj, moved, "draw_in")
+    nodes, draw_in = draw_in_field(traj, moved)
+    torch.testing.assert_close(points, moved[nodes])
+    torch.testing.assert_close(values, draw_in)
+    ((points, values),) = measure_field(traj, moved, "shear")
+    assert points.shape == (traj.cells[0].size(0), 3) and values.abs().max() < 1e-9  # a stretch, no shear
+    torch.testing.assert_close(points, moved[traj.cells[0]].mean(1))
+    assert field_of("draw_in_mean") == "draw_in" and field_of("penetration_max") == "penetration"
+    with pytest.raises(ValueError, match="unknown measure 'smoothness'"):
+        field_of("smoothness")
+    path = plot_measure_maps(tmp_path / "maps.png", traj, {"a": moved, "b": traj.pos[0]}, "draw_in_max")
+    assert path.stat().st_size > 1000

@@ -7,6 +7,7 @@ import torch
 from torch_ampn.design import (
     SettingsSpace,
     baseline_predictor,
+    parameter_map,
     search_settings,
     settings_objective,
     settings_trajectories,
@@ -35,6 +36,21 @@ def test_the_search_finds_the_optimum_of_an_analytic_stand_in():
     assert result.best_value == pytest.approx(float(objective(result.best[None])[0]))
     top, values = result.top(3)
     assert np.array_equal(top[0], result.best) and np.all(np.diff(values) >= 0)
+
+
+def test_the_parameter_map_holds_the_objective_on_its_grid():
+    space = SettingsSpace(2, (0.15, 0.85), (0.0, 100.0))
+    best = np.array([0.3, 0.7, 80.0, 12.0])
+
+    def objective(x):  # [M, 4] -> [M]
+        return x[:, 0] * 1000 + x[:, 3] + x[:, 1] * x[:, 2]
+
+    grid = parameter_map(objective, space, best, (0, 3), points=4)
+    assert grid["axes"] == ["position_0", "force_1"]
+    np.testing.assert_allclose(grid["a"], np.linspace(0.15, 0.85, 4))
+    i, j = 2, 1  # by hand: position_0 = a[2], force_1 = b[1], the others at best
+    expected = grid["a"][i] * 1000 + grid["b"][j] + 0.7 * 80.0
+    assert grid["values"].shape == (4, 4) and grid["values"][i, j] == pytest.approx(expected)
 
 
 def test_the_settings_space_of_a_config(small_sim):

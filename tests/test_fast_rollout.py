@@ -1,5 +1,6 @@
 """The fast rollout: contact candidates, slot aggregation, FastRollout against the plain path."""
 
+import dataclasses
 import warnings
 
 import pytest
@@ -184,6 +185,22 @@ def test_fast_rollout_of_a_stack_encoded_model_with_spare_components(long_run, h
     ref = _plain(s, traj, hierarchy)
     out = FastRollout(s, hierarchy, compile=False)([traj], [torch.Generator().manual_seed(3)])[0]
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+
+
+def test_fast_rollout_of_a_model_with_prior_features(long_run, hierarchy):
+    """The prior's offset and step enter the fast path's features as the plain path's."""
+    traj = long_run[0]
+    g = torch.Generator().manual_seed(5)
+    prior = traj.pos + 0.3 * torch.randn(traj.pos.shape, generator=g)  # a prior, wrong by 0.3 mm
+    traj = dataclasses.replace(traj, prior=prior)
+    s = _surrogate(traj, hierarchy, prior_features=True)
+    ref = _plain(s, traj, hierarchy)
+    out = FastRollout(s, hierarchy, compile=False)([traj], [torch.Generator().manual_seed(3)])[0]
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+    other = _plain(s, dataclasses.replace(traj, prior=prior + 1.0), hierarchy)
+    assert (other - ref).abs().max() > 1e-3  # the prior matters: the comparison means something
+    with pytest.raises(ValueError, match=r"trajectories \[0\] have none"):
+        FastRollout(s, hierarchy, compile=False)([dataclasses.replace(traj, prior=None)])
 
 
 #: The compiled tests' surrogates, the fewest ops that hold the graph each test checks (a compile

@@ -83,11 +83,3 @@ def test_windows_carry_the_prior_and_the_model_reads_it():
     torch.testing.assert_close(x_prior[:, -3:], traj.pos[2] - traj.pos[1])  # the prior's step
     with pytest.raises(ValueError, match="has no prior"):
         with_prior._raw_features(step_sample(dataclasses.replace(traj, prior=None), 2, h))
-
-
-def test_a_model_with_prior_features_takes_the_plain_rollout_path():
-    from torch_ampn.fast_rollout import fast_path_supported
-
-    assert fast_path_supported(AMPNSurrogate(num_components=3, num_grippers=1, hidden_channels=8)) is None
-    reason = fast_path_supported(AMPNSurrogate(num_components=3, num_grippers=1, prior_features=True))
-    assert reason is not None and "prior" in reason

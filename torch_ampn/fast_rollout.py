@@ -41,7 +41,7 @@ from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, Hierarchi
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.nn._conv import incoming_slots
-from torch_ampn.nn.features import edge_features, fine_node_features, gripper_features
+from torch_ampn.nn.features import edge_features, fine_node_features, gripper_features, prior_features
 from torch_ampn.nn.surrogate import AMPNSurrogate
 from torch_ampn.transforms.candidates import (
     CandidateState,
@@ -134,8 +134,6 @@ def fast_path_supported(surrogate: AMPNSurrogate) -> str | None:
     """``None`` if :class:`FastRollout` supports ``surrogate``, else the reason why not."""
     if surrogate.contact.mode != "component_knn":
         return f"contact mode {surrogate.contact.mode!r} has no fixed-size contact tables"
-    if getattr(surrogate, "prior_features", False):
-        return "prior features are built on the plain path only"
     return None
 
 
@@ -324,6 +322,8 @@ class FastRollout:
         magnitude: Tensor,
         fiber: Tensor,
         pos0_l: list[Tensor],
+        prior_pos: Tensor | None,
+        prior_next: Tensor | None,
         states: list[CandidateState | DenseState | PatchState | None],
         contact: list[tuple[Tensor, Tensor, Tensor] | None],
     ) -> tuple[dict, dict, dict, dict, dict, Tensor, Tensor]:
@@ -336,7 +336,8 @@ class FastRollout:
         hold ply nodes (``gripper_nodes [B, G, m]``) and pull them towards ``anchor [B, G, 3]``
         with force ``magnitude [B, G, 1]``, as the plain rollout does. Level ``k``'s contact
         edges are ``contact[k]`` (searched outside: edge index, validity, slot table) or else
-        selected here from ``states[k]``.
+        selected here from ``states[k]``. A model with prior features reads the prior's
+        positions at ``t - 1`` and ``t`` (``prior_pos``, ``prior_next`` ``[B N, 3]``; else ``None``).
         """
         s = self.surrogate
         prev_disp = pos - prev  # [B N, 3]
@@ -370,6 +371,7 @@ class FastRollout:
             grip,
             s.component_encoding,
             self.batch0,
+            None if prior_pos is None else prior_features(pos, prior_pos, prior_next),
         )
         x_dict = {"l0": s.node_norm["fine"](x)}
         x_dict.update({lk: s.node_norm["coarse"](t) for lk, t in self.coarse_types.items()})
@@ -534,6 +536,17 @@ class FastRollout:
         magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).float()[..., None]  # [B, G, 1]
         fiber = torch.cat([t.fiber.to(dev).float() for t in trajs])  # [B N, 3]
         pos0_l = [tool_path[0][idx] for idx in self.fine_index]
+        prior_path = None
+        if self.surrogate.prior_features:
+            missing = [i for i, t in enumerate(trajs[:count]) if t.prior is None]
+            if missing:
+                raise ValueError(
+                    f"the surrogate reads a prior (prior_features) but trajectories {missing} have none: "
+                    "set their .prior (e.g. a fitted baseline's predict(traj))"
+                )
+            prior_path = torch.cat(
+                [t.prior[: steps + 1].to(dev).float() for t in trajs], dim=1
+            )  # [T+1, B N, 3]
         if self.initial_contact:  # ROBIN's edges: from the initial state, once per rollout
             self._static_contact = []
             for k, cand in enumerate(self.candidates):
@@ -564,7 +577,8 @@ class FastRollout:
             for t in iterator:
                 pos = pred[t - 1]
                 prev = pred[max(t - 2, 0)]  # the first step has no previous displacement
-                inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0_l)
+                priors = (None, None) if prior_path is None else (prior_path[t - 1], prior_path[t])
+                inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0_l, *priors)
                 noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
                 if self.surrogate.diffusion_steps == 1:
                     (pred[t],) = self._checked(self._call_fused, *inputs, noise)

@@ -4,6 +4,7 @@
 * :mod:`~torch_ampn.design.search`: the settings space and a batched differential-evolution search.
 * :mod:`~torch_ampn.design.predictors`: a surrogate, a baseline or the simulator as the predictor.
 * :mod:`~torch_ampn.design.verify`: the simulated check of a choice.
+* :mod:`~torch_ampn.design.plots`: a measure's field on the plies, the parameter map, the check.
 """
 
 from torch_ampn.design.measures import (
@@ -17,18 +18,28 @@ from torch_ampn.design.measures import (
     shear_field,
     wrinkle_field,
 )
+from torch_ampn.design.plots import (
+    FIELDS,
+    field_of,
+    measure_field,
+    plot_measure_maps,
+    plot_parameter_map,
+    plot_verification,
+)
 from torch_ampn.design.predictors import baseline_predictor, simulator_predictor, surrogate_predictor
 from torch_ampn.design.search import (
     Predictor,
     SearchResult,
     SettingsSpace,
+    parameter_map,
     search_settings,
     settings_objective,
     settings_trajectories,
 )
-from torch_ampn.design.verify import Verification, verify_choice
+from torch_ampn.design.verify import Verification, measures_of, verify_choice
 
 __all__ = [
+    "FIELDS",
     "MEASURES",
     "Predictor",
     "SearchResult",
@@ -37,9 +48,16 @@ __all__ = [
     "WrinkleOperator",
     "baseline_predictor",
     "draw_in_field",
+    "field_of",
+    "measure_field",
+    "measures_of",
     "median_edge_length",
     "part_quality",
+    "parameter_map",
     "penetration_field",
+    "plot_measure_maps",
+    "plot_parameter_map",
+    "plot_verification",
     "ply_components",
     "search_settings",
     "settings_objective",

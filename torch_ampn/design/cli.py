@@ -6,8 +6,12 @@
 The predictor is a trained surrogate (``--checkpoint``) or a setting-aware baseline fitted on
 the dataset's training split (``--baseline``). Writes to ``--out``: ``design.json`` (the best
 settings, their predicted measures, the top-k, the search's history and cost, the verification),
-``map.png`` (the measure over two settings, the others at the best), ``top_<k>.xdmf`` (the
-top-k predicted rollouts) and, with ``--verify``, ``verify.png`` (predicted against simulated).
+``map.png`` (the measure over two settings, the others at the best), ``fields.png`` (the
+measure's field on each formed ply of the best setting: predicted, and simulated with
+``--verify``), ``top_<k>.xdmf`` (the top-k predicted rollouts) and, with ``--verify``,
+``verify.png`` (predicted against simulated, and the rank correlation of every measure;
+``--repeat 1e-6`` adds the simulator's correlation with itself from a start moved by 1e-6 mm,
+the ceiling of any predictor's).
 """
 
 from __future__ import annotations
@@ -18,8 +22,6 @@ import os
 import time
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 
 def _measure(values: list[str]) -> str | dict[str, float]:
@@ -80,67 +82,14 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
     return predict, f"surrogate {args.checkpoint}"
 
 
-def parameter_map(objective, space, best: np.ndarray, axes: tuple[int, int], points: int) -> dict:
-    """The objective on a ``points x points`` grid of two settings, the others at ``best``."""
-    lo, hi = np.array(space.bounds).T
-    a, b = (np.linspace(lo[i], hi[i], points) for i in axes)
-    grid = np.repeat(best[None], points * points, 0)
-    ga, gb = np.meshgrid(a, b, indexing="ij")
-    grid[:, axes[0]], grid[:, axes[1]] = ga.ravel(), gb.ravel()
-    return {
-        "axes": [space.names[i] for i in axes],
-        "a": a,
-        "b": b,
-        "values": objective(grid).reshape(points, points),
-    }
-
-
-def plot_map(path: Path, grid: dict, best: np.ndarray, axes: tuple[int, int], label: str) -> None:
-    """Contours of :func:`parameter_map`'s grid, the best setting marked."""
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
-    c = ax.contourf(grid["a"], grid["b"], grid["values"].T, levels=16, cmap="viridis")
-    fig.colorbar(c, ax=ax, label=label)
-    ax.plot(best[axes[0]], best[axes[1]], "r*", ms=14, label="best")
-    ax.set_xlabel(grid["axes"][0])
-    ax.set_ylabel(grid["axes"][1])
-    ax.legend(loc="upper right")
-    ax.set_title("predicted measure, other settings at the best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_verify(path: Path, check, label: str) -> None:
-    """Predicted against simulated measure of the random settings and the chosen one."""
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(4.8, 4.5))
-    ax.scatter(check.random_simulated, check.random_predicted, s=18, label="random settings")
-    ax.scatter([check.chosen_simulated], [check.chosen_predicted], c="r", marker="*", s=160, label="chosen")
-    lim = [
-        min(check.random_simulated.min(), check.random_predicted.min(), check.chosen_simulated),
-        max(check.random_simulated.max(), check.random_predicted.max(), check.chosen_simulated),
-    ]
-    ax.plot(lim, lim, "k--", lw=0.8)
-    ax.set_xlabel(f"simulated {label}")
-    ax.set_ylabel(f"predicted {label}")
-    ax.set_title(
-        f"Spearman {check.spearman:.2f}, chosen ranks {check.rank} of {len(check.random_simulated) + 1}"
-    )
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def run(args: argparse.Namespace) -> dict:
     """The design study the arguments describe; returns what ``design.json`` holds."""
     from torch_ampn.data.meshio_io import export_xdmf
     from torch_ampn.design.measures import MEASURES, part_quality
+    from torch_ampn.design.plots import plot_measure_maps, plot_parameter_map, plot_verification
     from torch_ampn.design.search import (
         SettingsSpace,
+        parameter_map,
         search_settings,
         settings_objective,
         settings_trajectories,
@@ -167,7 +116,7 @@ def run(args: argparse.Namespace) -> dict:
     top_x, top_values = result.top(args.top)
     top_trajs = settings_trajectories(cfg, space, top_x)
     rollouts = predict(top_trajs)
-    top = []
+    top, best_final = [], rollouts[0][-1]
     for k, (x, value, traj, pos) in enumerate(zip(top_x, top_values, top_trajs, rollouts, strict=True)):
         path = export_xdmf(traj, args.out / f"top_{k + 1}.xdmf", pos)
         quality = part_quality(traj, pos[-1], args.wrinkle_radius)
@@ -177,7 +126,7 @@ def run(args: argparse.Namespace) -> dict:
     grid = parameter_map(objective, space, result.best, axes, args.map_points)
     map_seconds = time.perf_counter() - start
     label = measure if isinstance(measure, str) else "weighted measure"
-    plot_map(args.out / "map.png", grid, result.best, axes, label)
+    plot_parameter_map(args.out / "map.png", grid, result.best, axes, label)
     report: dict[str, Any] = {
         "data_dir": str(args.data_dir),
         "predictor": described,
@@ -195,8 +144,10 @@ def run(args: argparse.Namespace) -> dict:
         check = verify_choice(
             cfg, result.best, predict, measure, args.verify, args.seed + 1,
             compile=not args.no_compile, wrinkle_radius=args.wrinkle_radius, progress=True,
+            repeat=args.repeat,
         )  # fmt: skip
-        plot_verify(args.out / "verify.png", check, label)
+        plot_verification(args.out / "verify.png", check, label)
+        finals = check.chosen_final
         report["verify"] = check.to_dict()
         per_sim = check.simulate_seconds / (args.verify + 1)
         report["cost"] = {
@@ -204,6 +155,13 @@ def run(args: argparse.Namespace) -> dict:
             "simulator_seconds_per_setting": per_sim,
             "search_over_simulating_the_random_settings": search_seconds / (per_sim * args.verify),
         }
+    else:
+        finals = {"predicted": best_final}
+    weights = measure if isinstance(measure, dict) else {measure: 1.0}
+    shown = max(weights, key=lambda n: abs(weights[n]))  # the heaviest measure's field
+    plot_measure_maps(
+        args.out / "fields.png", top_trajs[0], finals, shown, f"{shown} at the best setting (final state)"
+    )
     _write_json(args.out / "design.json", report)
     return report
 
@@ -234,6 +192,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--verify", type=int, default=0, metavar="N", help="simulate the choice and N random settings"
     )
+    p.add_argument(
+        "--repeat", type=float, default=0.0, metavar="MM",
+        help="with --verify: simulate the random settings again from a start moved by MM (e.g. 1e-6): "
+        "the simulator's rank correlation with itself",
+    )  # fmt: skip
     p.add_argument("--wrinkle-radius", type=float, default=None, help="mm (default: 3 ply edge lengths)")
     p.add_argument("--no-compile", action="store_true", help="run the surrogate and the simulator eagerly")
     p.add_argument("--out", type=Path, default=Path("outputs/design"))
@@ -255,5 +218,10 @@ def main(argv: list[str] | None = None) -> dict:
             f"verify: simulated, the choice ranks {v['rank']} of {len(v['random_simulated']) + 1}; "
             f"Spearman {rho} over {len(v['random_simulated'])} random settings"
         )
+        if v["repeat"]:
+            again = v["repeat_spearman"]
+            again = "undefined (constant)" if again is None else f"{again:.2f}"
+            moved = f"{v['repeat']:g} mm"
+            print(f"verify: the simulator against itself from a start moved by {moved}: Spearman {again}")
     print(f"wrote {args.out / 'design.json'}")
     return report

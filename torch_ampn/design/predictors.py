@@ -33,11 +33,17 @@ def baseline_predictor(baseline: Any) -> Predictor:
 
 
 def simulator_predictor(
-    cfg: StampFormingConfig, compile: bool = False, batch_size: int = 16, progress: bool = False
+    cfg: StampFormingConfig,
+    compile: bool = False,
+    batch_size: int = 16,
+    progress: bool = False,
+    perturbation: float = 0.0,
 ) -> Predictor:
     """The embedded simulator for each trajectory's recorded settings (``batch_size`` at a time).
 
     Reads the gripper settings from ``meta["gripper_edge_fraction"]`` and ``gripper_force``.
+    ``perturbation``: start each from ply positions moved by up to this many mm (seeded by the
+    setting's place in the call; see :func:`~torch_ampn.sim.simulate_batch`).
     """
     from torch_ampn.sim import simulate_batch
 
@@ -51,7 +57,9 @@ def simulator_predictor(
             starts = tqdm(starts, desc="simulate", unit="batch")
         for i in starts:
             part = settings[i : i + batch_size]
-            out += [t.pos for t in simulate_batch(cfg, settings=part, compile=compile)]
+            seeds = range(i, i + len(part))
+            trajs = simulate_batch(cfg, seeds, settings=part, compile=compile, perturbation=perturbation)
+            out += [t.pos for t in trajs]
         return out
 
     return predict

@@ -207,7 +207,33 @@ def search_settings(
     return SearchResult(settings[i], float(values[i]), settings, values, int(result.nit), history)
 
 
+def parameter_map(
+    objective: Callable[[np.ndarray], np.ndarray],
+    space: SettingsSpace,
+    best: np.ndarray,
+    axes: tuple[int, int],
+    points: int = 9,
+) -> dict:
+    """The objective on a ``points x points`` grid of two settings (``axes``), the others at ``best``.
+
+    Returns ``{"axes": [name, name], "a": [points], "b": [points], "values": [points, points]}``
+    (``values[i, j]`` at ``a[i]``, ``b[j]``).
+    """
+    lo, hi = np.array(space.bounds).T
+    a, b = (np.linspace(lo[i], hi[i], points) for i in axes)
+    grid = np.repeat(best[None], points * points, 0)
+    ga, gb = np.meshgrid(a, b, indexing="ij")
+    grid[:, axes[0]], grid[:, axes[1]] = ga.ravel(), gb.ravel()
+    return {
+        "axes": [space.names[i] for i in axes],
+        "a": a,
+        "b": b,
+        "values": objective(grid).reshape(points, points),
+    }
+
+
 __all__ = [
+    "parameter_map",
     "Predictor",
     "SearchResult",
     "SettingsSpace",

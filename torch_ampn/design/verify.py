@@ -1,19 +1,40 @@
 """Check a design choice with the simulator.
 
 Where the chosen setting ranks among random settings, how well the predictor ranks those
-(Spearman), and the cost of both ways.
+(Spearman, for the chosen measure and for every measure of
+:data:`~torch_ampn.design.measures.MEASURES`), and the cost of both ways. With ``repeat`` the
+random settings are simulated a second time from a start moved by ``repeat`` mm: the
+simulator's rank correlation with itself is the ceiling of any predictor's (the forming is
+chaotic; ``docs/design.md``).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from torch import Tensor
 
+from torch_ampn.design.measures import MEASURES, WrinkleOperator, part_quality
 from torch_ampn.design.predictors import simulator_predictor
-from torch_ampn.design.search import Predictor, SettingsSpace, settings_objective
+from torch_ampn.design.search import Predictor, SettingsSpace, settings_trajectories
 from torch_ampn.sim.config import StampFormingConfig
+
+
+def _spearman(a: Sequence[float], b: Sequence[float]) -> float:
+    """Rank correlation; NaN where either side is constant (no ranking to compare)."""
+    from scipy.stats import spearmanr
+
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
+        return float("nan")
+    return float(spearmanr(a, b).statistic)
+
+
+def _objective(measures: dict[str, np.ndarray], weights: dict[str, float]) -> np.ndarray:
+    return sum(w * measures[name] for name, w in weights.items())
 
 
 @dataclass
@@ -22,16 +43,23 @@ class Verification:
 
     Attributes:
         chosen: The chosen settings ``[D]``.
-        chosen_predicted: The predictor's measure of the chosen setting.
+        chosen_predicted: The predictor's objective (the measure searched) of the chosen setting.
         chosen_simulated: The simulator's.
         random_settings: The random settings ``[N, D]``.
-        random_predicted: The predictor's measure of each ``[N]``.
+        random_predicted: The predictor's objective of each ``[N]``.
         random_simulated: The simulator's ``[N]``.
         rank: 1 + the number of random settings the simulator finds better than the chosen one.
-        spearman: Rank correlation of predicted against simulated measures over the random
+        spearman: Rank correlation of predicted against simulated objective over the random
             settings; NaN where either is the same for all of them (e.g. the mean trajectory).
-        predict_seconds: Wall time of the predictor on the random settings.
+        predict_seconds: Wall time of the predictor on the chosen and the random settings.
         simulate_seconds: Wall time of the simulator on the chosen and the random settings.
+        predicted_measures: Every measure, predicted: name -> ``[1 + N]`` (the chosen first).
+        simulated_measures: The same, simulated.
+        spearman_by_measure: Predicted against simulated over the random settings, per measure.
+        repeat: The start perturbation of the repeated simulation [mm] (0: not repeated).
+        repeat_measures: The random settings simulated again: name -> ``[N]``.
+        repeat_spearman: Simulated against simulated again, objective (the ceiling of ``spearman``).
+        repeat_spearman_by_measure: The same per measure.
     """
 
     chosen: np.ndarray
@@ -44,6 +72,15 @@ class Verification:
     spearman: float
     predict_seconds: float
     simulate_seconds: float
+    predicted_measures: dict[str, np.ndarray] = field(default_factory=dict)
+    simulated_measures: dict[str, np.ndarray] = field(default_factory=dict)
+    spearman_by_measure: dict[str, float] = field(default_factory=dict)
+    repeat: float = 0.0
+    repeat_measures: dict[str, np.ndarray] = field(default_factory=dict)
+    repeat_spearman: float = float("nan")
+    repeat_spearman_by_measure: dict[str, float] = field(default_factory=dict)
+    #: The final states ``[N, 3]`` of the chosen setting, predicted and simulated (not in :meth:`to_dict`).
+    chosen_final: dict[str, Tensor] = field(default_factory=dict, repr=False)
 
     @property
     def percentile(self) -> float:
@@ -51,11 +88,37 @@ class Verification:
         return (self.rank - 1) / (len(self.random_simulated) + 1)
 
     def to_dict(self) -> dict:
-        """JSON-ready."""
-        out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
-        out["spearman"] = None if np.isnan(self.spearman) else self.spearman
+        """JSON-ready (NaN correlations become ``None``)."""
+
+        def plain(v):
+            if isinstance(v, np.ndarray):
+                return v.tolist()
+            if isinstance(v, dict):
+                return {k: plain(x) for k, x in v.items()}
+            if isinstance(v, float) and np.isnan(v):
+                return None
+            return v
+
+        out = {k: plain(v) for k, v in asdict(self).items() if k != "chosen_final"}
         out["percentile"] = self.percentile
         return out
+
+
+def _measures_and_finals(
+    predict: Predictor, cfg: StampFormingConfig, x: np.ndarray, wrinkle_radius: float | None
+) -> tuple[dict[str, np.ndarray], list[Tensor]]:
+    trajs = settings_trajectories(cfg, SettingsSpace.from_config(cfg), x)
+    finals = [pos[-1] for pos in predict(trajs)]
+    wrinkle = WrinkleOperator(trajs[0], wrinkle_radius)  # the settings share the part
+    rows = [part_quality(t, pos, wrinkle=wrinkle) for t, pos in zip(trajs, finals, strict=True)]
+    return {name: np.array([r[name] for r in rows]) for name in MEASURES}, finals
+
+
+def measures_of(
+    predict: Predictor, cfg: StampFormingConfig, x: np.ndarray, wrinkle_radius: float | None = None
+) -> dict[str, np.ndarray]:
+    """Every measure of :data:`MEASURES` of the predicted parts of settings ``x [M, D]``: name -> ``[M]``."""
+    return _measures_and_finals(predict, cfg, x, wrinkle_radius)[0]
 
 
 def verify_choice(
@@ -68,6 +131,7 @@ def verify_choice(
     compile: bool = False,
     wrinkle_radius: float | None = None,
     progress: bool = False,
+    repeat: float = 0.0,
 ) -> Verification:
     """Simulate ``chosen`` and ``num_random`` random settings; compare with the predictor's measures.
 
@@ -81,39 +145,55 @@ def verify_choice(
         compile: Compile the simulator.
         wrinkle_radius: See :func:`~torch_ampn.design.measures.wrinkle_field`.
         progress: Show a progress bar over the simulated batches.
+        repeat: Simulate the random settings again from a start moved by up to this many mm
+            (e.g. ``1e-6``) and report the simulator's rank correlation with itself (0: don't).
     """
-    from scipy.stats import spearmanr
-
     if num_random < 2:
         raise ValueError(
             f"verify needs at least 2 random settings (for a rank correlation), got {num_random}"
         )
+    if repeat < 0:
+        raise ValueError(f"repeat must be >= 0 mm, got {repeat}")
+    weights = {measure: 1.0} if isinstance(measure, str) else dict(measure)
+    unknown = sorted(set(weights) - set(MEASURES))
+    if unknown:
+        raise ValueError(f"measure must be among {sorted(MEASURES)}, got {unknown}")
     space = SettingsSpace.from_config(cfg)
     chosen = np.asarray(chosen, dtype=np.float64).reshape(-1)
     randoms = space.sample(num_random, seed)
-    predicted = settings_objective(predict, cfg, measure, wrinkle_radius)
-    simulated = settings_objective(
-        simulator_predictor(cfg, compile=compile, progress=progress), cfg, measure, wrinkle_radius
-    )
+    x = np.vstack([chosen, randoms])
     start = time.perf_counter()
-    pred = predicted(np.vstack([chosen, randoms]))
+    pred, pred_finals = _measures_and_finals(predict, cfg, x, wrinkle_radius)
     predict_seconds = time.perf_counter() - start
     start = time.perf_counter()
-    sim = simulated(np.vstack([chosen, randoms]))
+    simulator = simulator_predictor(cfg, compile=compile, progress=progress)
+    sim, sim_finals = _measures_and_finals(simulator, cfg, x, wrinkle_radius)
     simulate_seconds = time.perf_counter() - start
-    constant = next((v for v in (pred[1:], sim[1:]) if np.ptp(v) == 0), None)
-    return Verification(
+    pred_obj, sim_obj = _objective(pred, weights), _objective(sim, weights)
+    check = Verification(
         chosen=chosen,
-        chosen_predicted=float(pred[0]),
-        chosen_simulated=float(sim[0]),
+        chosen_predicted=float(pred_obj[0]),
+        chosen_simulated=float(sim_obj[0]),
         random_settings=randoms,
-        random_predicted=pred[1:],
-        random_simulated=sim[1:],
-        rank=1 + int((sim[1:] < sim[0]).sum()),
-        spearman=float(spearmanr(pred[1:], sim[1:]).statistic) if constant is None else np.nan,
+        random_predicted=pred_obj[1:],
+        random_simulated=sim_obj[1:],
+        rank=1 + int((sim_obj[1:] < sim_obj[0]).sum()),
+        spearman=_spearman(pred_obj[1:], sim_obj[1:]),
         predict_seconds=predict_seconds,
         simulate_seconds=simulate_seconds,
+        predicted_measures=pred,
+        simulated_measures=sim,
+        spearman_by_measure={n: _spearman(pred[n][1:], sim[n][1:]) for n in MEASURES},
+        chosen_final={"predicted": pred_finals[0], "simulated": sim_finals[0]},
     )
+    if repeat > 0:
+        again = simulator_predictor(cfg, compile=compile, progress=progress, perturbation=repeat)
+        rep = measures_of(again, cfg, randoms, wrinkle_radius)
+        check.repeat = repeat
+        check.repeat_measures = rep
+        check.repeat_spearman = _spearman(sim_obj[1:], _objective(rep, weights))
+        check.repeat_spearman_by_measure = {n: _spearman(sim[n][1:], rep[n]) for n in MEASURES}
+    return check
 
 
-__all__ = ["Verification", "verify_choice"]
+__all__ = ["Verification", "measures_of", "verify_choice"]
