@@ -68,7 +68,7 @@ class AMPNSurrogate(nn.Module):
         prior_features: Take a prior prediction of the trajectory as input
             (:func:`~torch_ampn.nn.features.prior_features`: 6 more fine-node columns), so that
             the network learns a correction of the prior; the windows must then carry it
-            (:attr:`~torch_ampn.data.Trajectory.prior`). Rollouts take the plain path.
+            (:attr:`~torch_ampn.data.Trajectory.prior`; rollouts read it from there too).
         **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
