@@ -17,7 +17,8 @@ BUDGET = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "2"]
 def test_a_baseline_design_study_with_verification(tiny_data, tmp_path):
     out = tmp_path / "design"
     report = main([str(tiny_data), "--baseline", "mean_trajectory", "--measure", "draw_in_mean",
-                   "--verify", "2", "--repeat", "1e-6", "--out", str(out), *BUDGET])  # fmt: skip
+                   "--verify", "2", "--repeat", "1e-6", "--refine", "2", "--out", str(out),
+                   *BUDGET])  # fmt: skip
     saved = json.loads((out / "design.json").read_text())
     assert saved["best"] == report["best"] and saved["measure"] == "draw_in_mean"
     assert report["search"]["evaluations"] == 2 * 2 * 4  # (maxiter + 1) generations x popsize x 4 settings
@@ -35,6 +36,12 @@ def test_a_baseline_design_study_with_verification(tiny_data, tmp_path):
     assert v["simulated_measures"]["draw_in_mean"] == [v["chosen_simulated"], *v["random_simulated"]]
     assert set(v["spearman_by_measure"]) == set(v["repeat_spearman_by_measure"]) == set(MEASURES)
     assert v["repeat"] == 1e-6 and len(v["repeat_measures"]["wrinkle_rms"]) == 2
+    # the mean trajectory is flat in the settings: no descent step helps, nothing more to verify
+    assert (
+        report["refine"]["steps"] == 0
+        and report["refine"]["objective"] == report["refine"]["start_objective"]
+    )
+    assert v["alternatives"] == {}
 
 
 @pytest.mark.xdist_group("tiny_fit")

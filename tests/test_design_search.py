@@ -79,9 +79,15 @@ def test_explicit_settings_simulate_as_their_seed_does(small_sim):
 def test_verify_with_the_simulator_as_its_own_predictor(small_sim):
     """Predicted == simulated (eager, deterministic): Spearman 1, the rank counted by hand."""
     chosen = np.array([0.5, 0.5, 50.0, 50.0])
+    other = np.array([0.2, 0.8, 90.0, 10.0])
     check = verify_choice(
-        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2
-    )
+        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2,
+        alternatives={"other": other},
+    )  # fmt: skip
+    alt = check.alternatives["other"]
+    assert alt["predicted"] == alt["simulated"] and np.array_equal(alt["settings"], other)
+    assert alt["rank"] == 1 + int((check.random_simulated < alt["simulated"]).sum())
+    assert len(check.simulated_measures["wrinkle_rms"]) == 4  # the chosen and the random ones only
     assert check.chosen_predicted == check.chosen_simulated
     np.testing.assert_array_equal(check.random_predicted, check.random_simulated)
     assert check.spearman == pytest.approx(1.0)
@@ -102,3 +108,31 @@ def test_a_baseline_predictor_gives_the_last_state(small_runs, small_sim):
     torch.testing.assert_close(predicted, mean.predict(trajs[0]))
     value = settings_objective(baseline_predictor(mean), small_sim, {"draw_in_mean": 2.0, "shear_max": 0.5})
     assert value(np.array([[0.4, 0.6, 10.0, 90.0]])).shape == (1,)
+
+
+def test_refinement_descends_to_the_bowls_minimum_and_never_climbs():
+    from torch_ampn.design import refine_settings
+
+    space = SettingsSpace(2, (0.15, 0.85), (0.0, 100.0))
+    target = np.array([0.3, 0.7, 80.0, 12.0])
+    scale = np.array([0.7, 0.7, 100.0, 100.0])
+    calls = []
+
+    def objective(x):  # a smooth bowl, minimum at `target`
+        calls.append(len(x))
+        return (((x - target) / scale) ** 2).sum(1)
+
+    start = np.array([0.6, 0.4, 40.0, 60.0])
+    result = refine_settings(objective, space.bounds, start, steps=30)
+    assert set(calls) <= {9, 3}  # one batch of 2 D + 1 differences, one of 3 step lengths per step
+    assert result.evaluations == sum(calls)
+    assert np.all(np.diff(result.history) < 0) and result.best_value == result.history[-1]
+    assert result.best_value < 0.01 * result.start_value
+    assert np.all(np.abs(result.best - target) / scale < 0.05)
+    # at a face of the box the step is clipped and stays inside it
+    edge = refine_settings(objective, space.bounds, np.array([0.15, 0.85, 100.0, 0.0]), steps=3)
+    lo, hi = np.array(space.bounds).T
+    assert np.all((edge.best >= lo) & (edge.best <= hi)) and edge.best_value < edge.start_value
+    # at the minimum nothing improves: the start comes back
+    still = refine_settings(objective, space.bounds, target, steps=3)
+    assert np.array_equal(still.best, target) and still.steps == 0 and still.improvement == 0.0

@@ -3,6 +3,7 @@
 * :mod:`~torch_ampn.design.measures`: wrinkles, draw-in, shear, penetration of a formed part.
 * :mod:`~torch_ampn.design.search`: the settings space and a batched differential-evolution search.
 * :mod:`~torch_ampn.design.predictors`: a surrogate, a baseline or the simulator as the predictor.
+* :mod:`~torch_ampn.design.refine`: descent from the searched setting on batched finite differences.
 * :mod:`~torch_ampn.design.verify`: the simulated check of a choice.
 * :mod:`~torch_ampn.design.plots`: a measure's field on the plies, the parameter map, the check.
 """
@@ -27,6 +28,7 @@ from torch_ampn.design.plots import (
     plot_verification,
 )
 from torch_ampn.design.predictors import baseline_predictor, simulator_predictor, surrogate_predictor
+from torch_ampn.design.refine import RefineResult, refine_settings
 from torch_ampn.design.search import (
     Predictor,
     SearchResult,
@@ -42,6 +44,7 @@ __all__ = [
     "FIELDS",
     "MEASURES",
     "Predictor",
+    "RefineResult",
     "SearchResult",
     "SettingsSpace",
     "Verification",
@@ -59,6 +62,7 @@ __all__ = [
     "plot_parameter_map",
     "plot_verification",
     "ply_components",
+    "refine_settings",
     "search_settings",
     "settings_objective",
     "settings_trajectories",

@@ -11,7 +11,8 @@ measure's field on each formed ply of the best setting: predicted, and simulated
 ``--verify``), ``top_<k>.xdmf`` (the top-k predicted rollouts) and, with ``--verify``,
 ``verify.png`` (predicted against simulated, and the rank correlation of every measure;
 ``--repeat 1e-6`` adds the simulator's correlation with itself from a start moved by 1e-6 mm,
-the ceiling of any predictor's).
+the ceiling of any predictor's; ``--refine STEPS`` descends from the searched best on batched
+finite differences and verifies the refined setting beside it).
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def run(args: argparse.Namespace) -> dict:
     from torch_ampn.data.meshio_io import export_xdmf
     from torch_ampn.design.measures import MEASURES, part_quality
     from torch_ampn.design.plots import plot_measure_maps, plot_parameter_map, plot_verification
+    from torch_ampn.design.refine import refine_settings
     from torch_ampn.design.search import (
         SettingsSpace,
         parameter_map,
@@ -113,6 +115,11 @@ def run(args: argparse.Namespace) -> dict:
     start = time.perf_counter()
     result = search_settings(objective, space.bounds, args.maxiter, args.popsize, args.seed, progress=True)
     search_seconds = time.perf_counter() - start
+    refined = None
+    if args.refine:
+        start = time.perf_counter()
+        refined = refine_settings(objective, space.bounds, result.best, args.refine, progress=True)
+        refine_seconds = time.perf_counter() - start
     top_x, top_values = result.top(args.top)
     top_trajs = settings_trajectories(cfg, space, top_x)
     rollouts = predict(top_trajs)
@@ -140,11 +147,19 @@ def run(args: argparse.Namespace) -> dict:
                    "seed": args.seed},
         "map": {"axes": grid["axes"], "points": args.map_points, "seconds": map_seconds},
     }  # fmt: skip
+    if refined is not None:
+        report["refine"] = {
+            "settings": dict(zip(space.names, refined.best.tolist(), strict=True)),
+            "start_objective": refined.start_value, "objective": refined.best_value,
+            "steps": refined.steps, "history": refined.history, "evaluations": refined.evaluations,
+            "seconds": refine_seconds,
+        }  # fmt: skip
     if args.verify:
         check = verify_choice(
             cfg, result.best, predict, measure, args.verify, args.seed + 1,
             compile=not args.no_compile, wrinkle_radius=args.wrinkle_radius, progress=True,
             repeat=args.repeat,
+            alternatives=None if refined is None or refined.steps == 0 else {"refined": refined.best},
         )  # fmt: skip
         plot_verification(args.out / "verify.png", check, label)
         finals = check.chosen_final
@@ -193,6 +208,10 @@ def parser() -> argparse.ArgumentParser:
         "--verify", type=int, default=0, metavar="N", help="simulate the choice and N random settings"
     )
     p.add_argument(
+        "--refine", type=int, default=0, metavar="STEPS",
+        help="descent steps from the searched best on batched finite differences (verified too)",
+    )  # fmt: skip
+    p.add_argument(
         "--repeat", type=float, default=0.0, metavar="MM",
         help="with --verify: simulate the random settings again from a start moved by MM (e.g. 1e-6): "
         "the simulator's rank correlation with itself",
@@ -211,6 +230,9 @@ def main(argv: list[str] | None = None) -> dict:
     shown = ", ".join(f"{k} {v:.3g}" for k, v in best["settings"].items())
     print(f"best settings: {shown}; objective {best['objective']:.4g}")
     print(f"search: {report['search']['evaluations']} settings in {report['search']['seconds']:.1f} s")
+    if "refine" in report:
+        r = report["refine"]
+        print(f"refine: {r['steps']} steps, objective {r['start_objective']:.4g} -> {r['objective']:.4g}")
     if "verify" in report:
         v = report["verify"]
         rho = "undefined (constant)" if v["spearman"] is None else f"{v['spearman']:.2f}"
@@ -218,6 +240,9 @@ def main(argv: list[str] | None = None) -> dict:
             f"verify: simulated, the choice ranks {v['rank']} of {len(v['random_simulated']) + 1}; "
             f"Spearman {rho} over {len(v['random_simulated'])} random settings"
         )
+        for name, alt in v["alternatives"].items():
+            of = len(v["random_simulated"]) + 1
+            print(f"verify: the {name} setting, simulated, ranks {alt['rank']} of {of}")
         if v["repeat"]:
             again = v["repeat_spearman"]
             again = "undefined (constant)" if again is None else f"{again:.2f}"

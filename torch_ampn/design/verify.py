@@ -79,6 +79,9 @@ class Verification:
     repeat_measures: dict[str, np.ndarray] = field(default_factory=dict)
     repeat_spearman: float = float("nan")
     repeat_spearman_by_measure: dict[str, float] = field(default_factory=dict)
+    #: Further settings simulated beside the choice (e.g. a refined one): name -> their
+    #: ``settings``, ``predicted`` and ``simulated`` objective and ``rank`` among the random ones.
+    alternatives: dict[str, dict] = field(default_factory=dict)
     #: The final states ``[N, 3]`` of the chosen setting, predicted and simulated (not in :meth:`to_dict`).
     chosen_final: dict[str, Tensor] = field(default_factory=dict, repr=False)
 
@@ -132,6 +135,7 @@ def verify_choice(
     wrinkle_radius: float | None = None,
     progress: bool = False,
     repeat: float = 0.0,
+    alternatives: dict[str, np.ndarray] | None = None,
 ) -> Verification:
     """Simulate ``chosen`` and ``num_random`` random settings; compare with the predictor's measures.
 
@@ -147,6 +151,8 @@ def verify_choice(
         progress: Show a progress bar over the simulated batches.
         repeat: Simulate the random settings again from a start moved by up to this many mm
             (e.g. ``1e-6``) and report the simulator's rank correlation with itself (0: don't).
+        alternatives: Further settings ``[D]`` by name to simulate and rank in the same run
+            (e.g. ``{"refined": refine_settings(...).best}``).
     """
     if num_random < 2:
         raise ValueError(
@@ -161,7 +167,8 @@ def verify_choice(
     space = SettingsSpace.from_config(cfg)
     chosen = np.asarray(chosen, dtype=np.float64).reshape(-1)
     randoms = space.sample(num_random, seed)
-    x = np.vstack([chosen, randoms])
+    others = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in (alternatives or {}).items()}
+    x = np.vstack([chosen, randoms, *others.values()])
     start = time.perf_counter()
     pred, pred_finals = _measures_and_finals(predict, cfg, x, wrinkle_radius)
     predict_seconds = time.perf_counter() - start
@@ -170,6 +177,15 @@ def verify_choice(
     sim, sim_finals = _measures_and_finals(simulator, cfg, x, wrinkle_radius)
     simulate_seconds = time.perf_counter() - start
     pred_obj, sim_obj = _objective(pred, weights), _objective(sim, weights)
+    n = num_random + 1  # the chosen and the random settings; the alternatives after them
+    ranked = {
+        name: {"settings": others[name], "predicted": float(pred_obj[n + i]),
+               "simulated": float(sim_obj[n + i]), "rank": 1 + int((sim_obj[1:n] < sim_obj[n + i]).sum())}
+        for i, name in enumerate(others)
+    }  # fmt: skip
+    pred = {k: v[:n] for k, v in pred.items()}
+    sim = {k: v[:n] for k, v in sim.items()}
+    pred_obj, sim_obj = pred_obj[:n], sim_obj[:n]
     check = Verification(
         chosen=chosen,
         chosen_predicted=float(pred_obj[0]),
@@ -184,6 +200,7 @@ def verify_choice(
         predicted_measures=pred,
         simulated_measures=sim,
         spearman_by_measure={n: _spearman(pred[n][1:], sim[n][1:]) for n in MEASURES},
+        alternatives=ranked,
         chosen_final={"predicted": pred_finals[0], "simulated": sim_finals[0]},
     )
     if repeat > 0:
