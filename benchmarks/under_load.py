@@ -43,10 +43,21 @@ MECHANISMS: dict[str, dict[str, str]] = {
     "spin=300": {"AMPN_THREADS": "off", "GOMP_SPINCOUNT": "300"},
     "spin=100": {"AMPN_THREADS": "off", "GOMP_SPINCOUNT": "100"},
     "threads=1": {"AMPN_THREADS": "off", "OMP_NUM_THREADS": "1"},
+    # sleeping threads, and compiled (Inductor) kernels run serially below this many elements
+    # per thread (Inductor's default: 512), so that small kernels wake no thread
+    **{
+        f"passive+chunk={n}": {
+            "AMPN_THREADS": "off",
+            "OMP_WAIT_POLICY": "PASSIVE",
+            "TORCHINDUCTOR_CPP_MIN_CHUNK_SIZE": str(n),
+        }
+        for n in (4096, 16384, 65536)
+    },  # fmt: skip
     "package": {},
 }
 #: Environment variables a mechanism may set; removed before each run so that none leaks in.
 CONTROLLED = ("AMPN_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")
+CONTROLLED += ("TORCHINDUCTOR_CPP_MIN_CHUNK_SIZE",)
 WORKLOADS = ("train", "rollout", "simulate")
 BUSY = "import time\nend = time.monotonic() + {limit}\nwhile time.monotonic() < end:\n    pass\n"
 
