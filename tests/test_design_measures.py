@@ -9,6 +9,7 @@ from torch_ampn.data import Trajectory
 from torch_ampn.data.mesh import MultiComponentMesh, rectangle_mesh
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.design import (
+    MEASURES,
     WrinkleOperator,
     draw_in_field,
     median_edge_length,
@@ -210,3 +211,14 @@ def test_measure_maps_place_each_field_on_its_ply(tmp_path):
         field_of("smoothness")
     path = plot_measure_maps(tmp_path / "maps.png", traj, {"a": moved, "b": traj.pos[0]}, "draw_in_max")
     assert path.stat().st_size > 1000
+
+
+def test_part_quality_of_some_measures_equals_those_of_all():
+    traj = _part(n=12, die=True)
+    moved = _moved(traj, lambda x: x + torch.stack([0.05 * x[:, 1], 0 * x[:, 0], torch.sin(x[:, 0] / 5)], 1))
+    every = part_quality(traj, moved)
+    assert list(every) == list(MEASURES)
+    for names in (["wrinkle_rms"], ["shear_max", "draw_in_mean"], ["penetration_max"]):
+        assert part_quality(traj, moved, names=names) == {n: every[n] for n in names}
+    with pytest.raises(ValueError, match=r"unknown measures \['flatness'\]"):
+        part_quality(traj, moved, names=["flatness"])

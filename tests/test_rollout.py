@@ -10,7 +10,7 @@ from torch_ampn.data import HierarchyCache, NodeType, step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse
-from torch_ampn.sim import process_trajectory
+from torch_ampn.sim import process_trajectories, process_trajectory
 
 
 @pytest.fixture(scope="module")
@@ -124,6 +124,19 @@ def test_process_trajectory_matches_the_simulated_setting(small_runs, small_sim)
         small_sim, traj.meta["gripper_edge_fraction"], traj.gripper_force.double().tolist()
     )
     assert torch.equal(explicit.gripper_nodes, traj.gripper_nodes)
+    # many settings at once, the mesh and tool motion built once: each as built alone
+    settings = [
+        (traj.meta["gripper_edge_fraction"], traj.gripper_force.double().tolist()),
+        ([0.2, 0.9], [5.0, 70.0]),
+    ]
+    first, second = process_trajectories(small_sim, settings)
+    for many, (where, force) in zip((first, second), settings, strict=True):
+        one = process_trajectory(small_sim, where, force)
+        for name in ("pos", "time", "fiber", "component", "node_type", "gripper_nodes", "gripper_anchor"):
+            assert torch.equal(getattr(many, name), getattr(one, name)), name
+        assert torch.equal(many.gripper_force, one.gripper_force) and many.meta == one.meta
+    first.pos[1:] += 1.0  # writing into one (as a prediction buffer) leaves the other alone
+    assert torch.equal(second.pos, process_trajectory(small_sim, *settings[1]).pos)
 
 
 @pytest.mark.parametrize(

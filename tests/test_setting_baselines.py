@@ -103,6 +103,10 @@ def test_pod_regression_reproduces_its_training_trajectories(regressor):
     assert len(model.explained_variance_ratio) <= len(SMOOTH) - 1
     for traj in SMOOTH:
         torch.testing.assert_close(model.predict(traj), traj.pos, atol=1e-4, rtol=0)
+    together = model.predict_many(SMOOTH[::-1])  # one batch of settings: each as predicted alone
+    for traj, pred in zip(SMOOTH[::-1], together, strict=True):
+        torch.testing.assert_close(pred, model.predict(traj), atol=1e-6, rtol=0)
+    assert model.predict_many([]) == []
 
 
 def test_pod_gp_beats_the_mean_and_the_nearest_setting_between_training_settings():

@@ -125,8 +125,23 @@ class TrajectoryBaseline:
         if self._template is None:
             raise RuntimeError(f"{type(self).__name__}: call fit() first")
         _check_same_mesh(self._template, traj)
-        out = traj.pos.clone().float()
-        out[:, self._ply] = self.predict_settings(process_settings(traj)[None])[0]
+        return self.predict_many([traj])[0]
+
+    def predict_many(self, trajectories: Sequence[Trajectory]) -> list[Tensor]:
+        """:meth:`predict` of several trajectories of the training mesh in one batch of settings."""
+        if self._template is None:
+            raise RuntimeError(f"{type(self).__name__}: call fit() first")
+        trajs = list(trajectories)
+        if not trajs:
+            return []
+        for traj in trajs:
+            _check_same_mesh(self._template, traj)
+        plies = self.predict_settings(torch.stack([process_settings(t) for t in trajs]))  # [B, T+1, P, 3]
+        out = []
+        for traj, ply_pos in zip(trajs, plies, strict=True):
+            pos = traj.pos.clone().float()
+            pos[:, self._ply] = ply_pos
+            out.append(pos)
         return out
 
     def __repr__(self) -> str:

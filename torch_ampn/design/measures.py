@@ -20,6 +20,8 @@ Lengths are in mm, angles in degrees.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import torch
 from torch import Tensor
 
@@ -211,6 +213,19 @@ def _boundary_normals(ref: Tensor, cells: Tensor) -> tuple[Tensor, Tensor]:
     return nodes, acc / acc.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
+_BOUNDARY_CACHE: dict[tuple[bytes, bytes], tuple[Tensor, Tensor]] = {}
+
+
+def _cached_boundary_normals(ref: Tensor, cells: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_boundary_normals` of a ply, remembered by content (a study judges one part many times)."""
+    key = (ref.numpy().tobytes(), cells.numpy().tobytes())
+    if key not in _BOUNDARY_CACHE:
+        if len(_BOUNDARY_CACHE) >= 64:
+            _BOUNDARY_CACHE.pop(next(iter(_BOUNDARY_CACHE)))
+        _BOUNDARY_CACHE[key] = _boundary_normals(ref, cells)
+    return _BOUNDARY_CACHE[key]
+
+
 def draw_in_field(traj: Trajectory, pos: Tensor) -> tuple[Tensor, Tensor]:
     """Draw-in of every ply's free edge (mm): the boundary nodes and their inward in-plane displacement.
 
@@ -225,7 +240,7 @@ def draw_in_field(traj: Trajectory, pos: Tensor) -> tuple[Tensor, Tensor]:
     ref_all = traj.pos[0].double()
     nodes, values = [], []
     for c in ply_components(traj):
-        g, normal = _boundary_normals(ref_all, traj.cells[c])
+        g, normal = _cached_boundary_normals(ref_all, traj.cells[c])
         nodes.append(g)
         values.append(-((x[g] - ref_all[g]) * normal).sum(1))
     if not nodes:
@@ -335,28 +350,35 @@ def part_quality(
     pos: Tensor,
     wrinkle_radius: float | None = None,
     wrinkle: WrinkleOperator | None = None,
+    names: Iterable[str] | None = None,
 ) -> dict[str, float]:
     """The scalar measures of :data:`MEASURES` for positions ``pos`` ``[N, 3]`` of the part ``traj``.
 
     ``wrinkle``: a :class:`WrinkleOperator` of this part built before (else one is built with
-    ``wrinkle_radius``).
+    ``wrinkle_radius``). ``names``: only these measures (and only their fields are computed);
+    default all.
     """
     _check_pos(traj, pos)
-    if wrinkle is None or not wrinkle.applies_to(traj):
-        wrinkle = WrinkleOperator(traj, wrinkle_radius)
-    wrinkle = wrinkle(pos)[traj.node_type == NodeType.PLY]
-    _, draw_in = draw_in_field(traj, pos)
-    _, shear = shear_field(traj, pos)
-    penetration = penetration_field(traj, pos)
-    return {
-        "wrinkle_amplitude": float(wrinkle.abs().max()),
-        "wrinkle_rms": float(wrinkle.square().mean().sqrt()),
-        "draw_in_mean": float(draw_in.mean()),
-        "draw_in_max": float(draw_in.max()),
-        "shear_max": float(shear.abs().max()),
-        "shear_rms": float(shear.square().mean().sqrt()),
-        "penetration_max": float(penetration.max()),
-    }
+    wanted = list(MEASURES) if names is None else list(names)
+    unknown = sorted(set(wanted) - set(MEASURES))
+    if unknown:
+        raise ValueError(f"unknown measures {unknown}; choose from {sorted(MEASURES)}")
+    fields = {name.split("_")[0] for name in wanted}  # wrinkle, draw, shear, penetration
+    out: dict[str, float] = {}
+    if "wrinkle" in fields:
+        if wrinkle is None or not wrinkle.applies_to(traj):
+            wrinkle = WrinkleOperator(traj, wrinkle_radius)
+        w = wrinkle(pos)[traj.node_type == NodeType.PLY]
+        out |= {"wrinkle_amplitude": float(w.abs().max()), "wrinkle_rms": float(w.square().mean().sqrt())}
+    if "draw" in fields:
+        _, draw_in = draw_in_field(traj, pos)
+        out |= {"draw_in_mean": float(draw_in.mean()), "draw_in_max": float(draw_in.max())}
+    if "shear" in fields:
+        _, shear = shear_field(traj, pos)
+        out |= {"shear_max": float(shear.abs().max()), "shear_rms": float(shear.square().mean().sqrt())}
+    if "penetration" in fields:
+        out["penetration_max"] = float(penetration_field(traj, pos).max())
+    return {name: out[name] for name in wanted}
 
 
 __all__ = [

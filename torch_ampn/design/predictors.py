@@ -24,9 +24,11 @@ from torch_ampn.sim.config import StampFormingConfig
 
 
 def baseline_predictor(baseline: Any) -> Predictor:
-    """A fitted baseline's ``predict(traj)`` ``[T + 1, N, 3]``."""
+    """A fitted baseline's ``predict(traj)`` ``[T + 1, N, 3]`` (all at once where it has ``predict_many``)."""
 
     def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
+        if hasattr(baseline, "predict_many"):
+            return baseline.predict_many(trajs)
         return [baseline.predict(traj) for traj in trajs]
 
     return predict

@@ -73,10 +73,10 @@ class SettingsSpace:
 
 
 def settings_trajectories(cfg: StampFormingConfig, space: SettingsSpace, x: np.ndarray) -> list[Trajectory]:
-    """The rollout inputs (:func:`~torch_ampn.sim.process_trajectory`) of settings ``x`` ``[M, 2G]``."""
-    from torch_ampn.sim import process_trajectory
+    """The rollout inputs (:func:`~torch_ampn.sim.process_trajectories`) of settings ``x`` ``[M, 2G]``."""
+    from torch_ampn.sim import process_trajectories
 
-    return [process_trajectory(cfg, where, force) for where, force in space.split(x)]
+    return process_trajectories(cfg, space.split(x))
 
 
 def settings_objective(
@@ -107,7 +107,7 @@ def settings_objective(
         for traj, pos in zip(trajs, rollouts, strict=True):
             if operator[0] is None or not operator[0].applies_to(traj):
                 operator[0] = WrinkleOperator(traj, wrinkle_radius)  # one per part: the settings share it
-            q = part_quality(traj, pos[-1], wrinkle=operator[0])
+            q = part_quality(traj, pos[-1], wrinkle=operator[0], names=weights)  # only what is weighed
             values.append(sum(w * q[name] for name, w in weights.items()))
         return np.asarray(values, dtype=np.float64)
 

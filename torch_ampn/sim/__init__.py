@@ -3,7 +3,13 @@
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.dataset import SPLIT_SEED_OFFSET, generate_dataset, trajectory_path
 from torch_ampn.sim.family import PartFamily, part_config, sample_part
-from torch_ampn.sim.simulate import build_mesh, process_trajectory, simulate, simulate_batch
+from torch_ampn.sim.simulate import (
+    build_mesh,
+    process_trajectories,
+    process_trajectory,
+    simulate,
+    simulate_batch,
+)
 
 __all__ = [
     "PartFamily",
@@ -12,6 +18,7 @@ __all__ = [
     "build_mesh",
     "generate_dataset",
     "part_config",
+    "process_trajectories",
     "process_trajectory",
     "sample_part",
     "simulate",

@@ -410,25 +410,54 @@ def process_trajectory(
         if gripper_positions is None or gripper_forces is None:
             raise ValueError("process_trajectory needs gripper_positions and gripper_forces (or a seed)")
         where, force = explicit_process(cfg, gripper_positions, gripper_forces)
+    return _unsolved(cfg, [(where, force)], [{} if seed is None else {"seed": int(seed)}])[0]
+
+
+def process_trajectories(
+    config: StampFormingConfig | None,
+    settings: Sequence[tuple[Sequence[float] | Tensor, Sequence[float] | Tensor]],
+) -> list[Trajectory]:
+    """:func:`process_trajectory` of many settings of one process, its mesh and tool motion built once.
+
+    Args:
+        config: Simulator settings (default: the coarse default).
+        settings: ``(gripper_positions [G], gripper_forces [G])`` per trajectory.
+    """
+    cfg = config or StampFormingConfig()
+    cfg.validate()
+    processes = [explicit_process(cfg, where, force) for where, force in settings]
+    return _unsolved(cfg, processes, [{} for _ in processes])
+
+
+def _unsolved(
+    cfg: StampFormingConfig, processes: Sequence[tuple[Tensor, Tensor]], metas: Sequence[dict]
+) -> list[Trajectory]:
+    """The unsolved trajectories (plies at rest, tools on their path) of checked ``processes``."""
     mesh = build_mesh(cfg)
     n = int((mesh.node_type == NodeType.PLY).sum())
-    nodes, anchors = _gripper_layout(cfg, mesh.pos[:n], n // cfg.num_plies, where)
     times, tool_frames = _tool_motion(cfg, mesh, n)
     plies = mesh.pos[:n].expand(cfg.num_steps + 1, -1, -1)
-    return _trajectory(
-        mesh,
-        plies,
-        times,
-        tool_frames,
-        _fiber_directions(cfg, mesh, n),
-        nodes,
-        anchors,
-        force,
-        ground_truth=False,
-        config=cfg.to_dict(),
-        gripper_edge_fraction=where.tolist(),
-        **({} if seed is None else {"seed": int(seed)}),
-    )
+    fiber = _fiber_directions(cfg, mesh, n)
+    out = []
+    for (where, force), meta in zip(processes, metas, strict=True):
+        nodes, anchors = _gripper_layout(cfg, mesh.pos[:n], n // cfg.num_plies, where)
+        out.append(
+            _trajectory(
+                mesh,
+                plies,
+                times,
+                tool_frames,
+                fiber,
+                nodes,
+                anchors,
+                force,
+                ground_truth=False,
+                config=cfg.to_dict(),
+                gripper_edge_fraction=where.tolist(),
+                **meta,
+            )  # fmt: skip
+        )
+    return out
 
 
 def simulate_batch(
