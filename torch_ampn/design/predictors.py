@@ -99,8 +99,9 @@ def surrogate_predictor(
     def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
         trajs = list(trajs)
         if needs_prior:
-            for traj in trajs:
-                traj.prior = prior.predict(traj)
+            priors = baseline_predictor(prior)(trajs)
+            for traj, p in zip(trajs, priors, strict=True):
+                traj.prior = p
         dev = device or "cpu"
         gens = [torch.Generator(device=dev).manual_seed(seed) for _ in trajs]
         if batched:
