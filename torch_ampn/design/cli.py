@@ -11,7 +11,7 @@ measure's field on each formed ply of the best setting: predicted, and simulated
 ``--verify``), ``top_<k>.xdmf`` (the top-k predicted rollouts) and, with ``--verify``,
 ``verify.png`` (predicted against simulated, and the rank correlation of every measure;
 ``--repeat 1e-6`` adds the simulator's correlation with itself from a start moved by 1e-6 mm,
-the ceiling of any predictor's; ``--refine STEPS`` descends from the searched best on batched
+its chaos, which bounds any predictor's; ``--refine STEPS`` descends from the searched best on batched
 finite differences and verifies the refined setting beside it).
 """
 

@@ -4,8 +4,8 @@ Where the chosen setting ranks among random settings, how well the predictor ran
 (Spearman, for the chosen measure and for every measure of
 :data:`~torch_ampn.design.measures.MEASURES`), and the cost of both ways. With ``repeat`` the
 random settings are simulated a second time from a start moved by ``repeat`` mm: the
-simulator's rank correlation with itself is the ceiling of any predictor's (the forming is
-chaotic; ``docs/design.md``).
+simulator's rank correlation with itself, ``r``, measures the forming's chaos: a predictor of
+the chaos-free measure reaches about ``sqrt(r)`` against one simulated run (``docs/design.md``).
 """
 
 from __future__ import annotations
@@ -58,7 +58,8 @@ class Verification:
         spearman_by_measure: Predicted against simulated over the random settings, per measure.
         repeat: The start perturbation of the repeated simulation [mm] (0: not repeated).
         repeat_measures: The random settings simulated again: name -> ``[N]``.
-        repeat_spearman: Simulated against simulated again, objective (the ceiling of ``spearman``).
+        repeat_spearman: Simulated against simulated again, objective (``spearman`` stays below
+            about its square root).
         repeat_spearman_by_measure: The same per measure.
     """
 
