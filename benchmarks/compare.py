@@ -160,11 +160,11 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def simulator_reference(data_dir: Path, compile: bool = True) -> dict[str, Any]:
+def simulator_reference(data_dir: Path, compile: bool = True, limit: int | None = None) -> dict[str, Any]:
     """The embedded simulator on the test trajectories: seconds per trajectory and its own repeatability.
 
     Compiled (its fastest settings; ``compile=False`` for quick checks), after a warm-up: one
-    trajectory at a time and all at once;
+    trajectory at a time and all at once, on the first ``limit`` test trajectories (all: None);
     ``fastest`` is the smaller time per trajectory. ``rmse_vs_dataset`` is the rollout RMSE
     (ply nodes, mean over steps and trajectories) of these new runs against the stored ones:
     the same settings simulated in another batch or thread count differ by that much, since
@@ -176,7 +176,7 @@ def simulator_reference(data_dir: Path, compile: bool = True) -> dict[str, Any]:
 
     spec = json.loads((data_dir / "dataset.json").read_text())
     cfg = StampFormingConfig.from_dict(spec["simulator"])
-    stored = list(TrajectoryDataset(data_dir, "test"))
+    stored = list(TrajectoryDataset(data_dir, "test"))[:limit]
     seeds = [int(t.meta["seed"]) for t in stored]
     batches = len(seeds) > 1  # one test trajectory: "all at once" is "one at a time"
     if compile:  # compile outside the timings (each seed: its gripper layout may change the shapes)
@@ -220,12 +220,15 @@ def _simulator_of(args: argparse.Namespace) -> dict[str, Any]:
     path = args.results / "simulator.json"
     if path.exists():
         stored = json.loads(path.read_text())
-        if stored.get("dataset") == dataset and stored.get("mode") == args.simulator_mode:
+        same = (stored.get("dataset"), stored.get("mode"), stored.get("limit"))
+        if same == (dataset, args.simulator_mode, args.simulator_trajectories):
             print("the embedded simulator: measured before (simulator.json)", flush=True)
             return stored
     print(f"the embedded simulator on the test trajectories ({args.simulator_mode}) ...", flush=True)
-    simulator = simulator_reference(args.data_dir, compile=args.simulator_mode == "compiled")
-    simulator.update(dataset=dataset, mode=args.simulator_mode)
+    simulator = simulator_reference(
+        args.data_dir, compile=args.simulator_mode == "compiled", limit=args.simulator_trajectories
+    )
+    simulator.update(dataset=dataset, mode=args.simulator_mode, limit=args.simulator_trajectories)
     args.results.mkdir(parents=True, exist_ok=True)
     _atomic_write(path, lambda p: p.write_text(json.dumps(simulator, indent=1)))
     return simulator
@@ -723,6 +726,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--set", nargs=2, action="append", metavar=("KEY", "VALUE"), help="change the base config"
     )
     parser.add_argument("--simulator-mode", choices=["compiled", "eager"], default="compiled")
+    parser.add_argument(
+        "--simulator-trajectories",
+        type=int,
+        default=None,
+        help="time the simulator on the first N test trajectories (default: all)",
+    )
     parser.add_argument("--report", action="store_true", help="only build the table and figures")
     parser.add_argument(
         "--timings", action="store_true", help="time every variant's rollout and the simulator side by side"
