@@ -58,7 +58,7 @@ def test_bad_input_ends_in_one_line(tiny_data, tmp_path, monkeypatch, capsys):
     from torch_ampn.training.cli import entry_point
 
     for args, message in [
-        (["--baseline", "pod_gp", "--measure", "smoothness"], "--measure: unknown ['smoothness']"),
+        (["--baseline", "pod_gp", "--measure", "smoothness"], "--measure: measure must be among"),
         (["--checkpoint", str(tmp_path / "none.ckpt")], "no such checkpoint"),
         (["--baseline", "pod_gp", "--map", "force_0", "force_0"], "--map needs two different names"),
     ]:

@@ -7,6 +7,7 @@ import torch
 from torch_ampn.design import (
     SettingsSpace,
     baseline_predictor,
+    measure_weights,
     parameter_map,
     search_settings,
     settings_objective,
@@ -64,6 +65,15 @@ def test_the_settings_space_of_a_config(small_sim):
         space.split(np.zeros((1, 3)))
     with pytest.raises(ValueError, match="measure must be among"):
         settings_objective(lambda trajs: [], small_sim, "smoothness")
+
+
+def test_measure_weights_of_a_name_and_of_a_weighted_sum():
+    assert measure_weights("wrinkle_rms") == {"wrinkle_rms": 1.0}
+    assert measure_weights({"draw_in_mean": 2, "shear_max": 0.5}) == {"draw_in_mean": 2.0, "shear_max": 0.5}
+    bad_ones = [("smoothness", "smoothness"), ({"wrinkle_rms": 1, "waviness": 1}, "waviness"), ({}, "none")]
+    for bad, named in bad_ones:
+        with pytest.raises(ValueError, match=f"measure must be among .*{named}"):
+            measure_weights(bad)
 
 
 def test_explicit_settings_simulate_as_their_seed_does(small_sim):

@@ -203,6 +203,22 @@ def test_fast_rollout_of_a_model_with_prior_features(long_run, hierarchy):
         FastRollout(s, hierarchy, compile=False)([dataclasses.replace(traj, prior=None)])
 
 
+def test_surrogate_predictor_gives_the_prior_and_leaves_the_callers_trajectories_alone(long_run, hierarchy):
+    """The design predictor of a prior-reading surrogate: the plain rollout with the baseline's prior."""
+    from torch_ampn.baselines import MeanTrajectory
+    from torch_ampn.design import surrogate_predictor
+
+    traj, mean = long_run[0], MeanTrajectory().fit(long_run)
+    with_prior = dataclasses.replace(traj, prior=mean.predict(traj))
+    s = _surrogate(with_prior, hierarchy, prior_features=True)
+    out = surrogate_predictor(s, hierarchy, prior=mean, compile=False, seed=3)([traj])[0]
+    ref = _plain(s, with_prior, hierarchy, seed=3)
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=0)
+    assert traj.prior is None  # the predictor worked on a copy
+    with pytest.raises(ValueError, match="give the fitted prior baseline"):
+        surrogate_predictor(s, hierarchy)
+
+
 #: The compiled tests' surrogates, the fewest ops that hold the graph each test checks (a compile
 #: costs about a minute per step graph and layer count on 2 cores, whatever d): the fused step
 #: (features, contact slots, an intra-level layer and the update in one graph) on a flat network

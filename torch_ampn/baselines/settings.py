@@ -122,9 +122,6 @@ class TrajectoryBaseline:
         Raises:
             ValueError: If ``traj`` is not on the training mesh.
         """
-        if self._template is None:
-            raise RuntimeError(f"{type(self).__name__}: call fit() first")
-        _check_same_mesh(self._template, traj)
         return self.predict_many([traj])[0]
 
     def predict_many(self, trajectories: Sequence[Trajectory]) -> list[Tensor]:

@@ -91,6 +91,7 @@ def run(args: argparse.Namespace) -> dict:
     from torch_ampn.design.refine import refine_settings
     from torch_ampn.design.search import (
         SettingsSpace,
+        measure_weights,
         parameter_map,
         search_settings,
         settings_objective,
@@ -100,10 +101,10 @@ def run(args: argparse.Namespace) -> dict:
     from torch_ampn.training import AMPNDataModule
 
     measure = _measure(args.measure)
-    names = [measure] if isinstance(measure, str) else list(measure)
-    unknown = [n for n in names if n not in MEASURES]
-    if unknown:
-        raise ValueError(f"--measure: unknown {unknown}; choose from {sorted(MEASURES)}")
+    try:
+        names = list(measure_weights(measure))
+    except ValueError as err:
+        raise ValueError(f"--measure: {err}") from None
     cfg = AMPNDataModule(str(args.data_dir), generate=False).simulator_config()
     space = SettingsSpace.from_config(cfg)
     axes = tuple(space.names.index(n) if n in space.names else -1 for n in args.map)

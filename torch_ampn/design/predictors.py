@@ -11,6 +11,7 @@ Each returns a :data:`~torch_ampn.design.search.Predictor`: a function of settin
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -99,9 +100,8 @@ def surrogate_predictor(
     def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
         trajs = list(trajs)
         if needs_prior:
-            priors = baseline_predictor(prior)(trajs)
-            for traj, p in zip(trajs, priors, strict=True):
-                traj.prior = p
+            priors = baseline_predictor(prior)(trajs)  # on shallow copies: the caller's stay as they are
+            trajs = [dataclasses.replace(t, prior=p) for t, p in zip(trajs, priors, strict=True)]
         dev = device or "cpu"
         gens = [torch.Generator(device=dev).manual_seed(seed) for _ in trajs]
         if batched:

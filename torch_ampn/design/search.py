@@ -79,6 +79,19 @@ def settings_trajectories(cfg: StampFormingConfig, space: SettingsSpace, x: np.n
     return process_trajectories(cfg, space.split(x))
 
 
+def measure_weights(measure: str | dict[str, float]) -> dict[str, float]:
+    """``{name: weight}`` of a measure name or of a weighted sum.
+
+    Every name is checked against :data:`~torch_ampn.design.measures.MEASURES`; a ``ValueError``
+    names the unknown ones.
+    """
+    weights = {measure: 1.0} if isinstance(measure, str) else {k: float(v) for k, v in measure.items()}
+    unknown = sorted(set(weights) - set(MEASURES))
+    if unknown or not weights:
+        raise ValueError(f"measure must be among {sorted(MEASURES)}, got {unknown or 'none'}")
+    return weights
+
+
 def settings_objective(
     predict: Predictor,
     cfg: StampFormingConfig,
@@ -93,10 +106,7 @@ def settings_objective(
         measure: A name of :data:`~torch_ampn.design.measures.MEASURES`, or ``{name: weight}``.
         wrinkle_radius: See :func:`~torch_ampn.design.measures.wrinkle_field`.
     """
-    weights = {measure: 1.0} if isinstance(measure, str) else dict(measure)
-    unknown = sorted(set(weights) - set(MEASURES))
-    if unknown or not weights:
-        raise ValueError(f"measure must be among {sorted(MEASURES)}, got {unknown or 'none'}")
+    weights = measure_weights(measure)
     space = SettingsSpace.from_config(cfg)
     operator: list[WrinkleOperator | None] = [None]
 
@@ -238,6 +248,7 @@ __all__ = [
     "SearchResult",
     "SettingsSpace",
     "search_settings",
+    "measure_weights",
     "settings_objective",
     "settings_trajectories",
 ]

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from torch_ampn.design.measures import MEASURES, WrinkleOperator, part_quality
 from torch_ampn.design.predictors import simulator_predictor
-from torch_ampn.design.search import Predictor, SettingsSpace, settings_trajectories
+from torch_ampn.design.search import Predictor, SettingsSpace, measure_weights, settings_trajectories
 from torch_ampn.sim.config import StampFormingConfig
 
 
@@ -161,10 +161,7 @@ def verify_choice(
         )
     if repeat < 0:
         raise ValueError(f"repeat must be >= 0 mm, got {repeat}")
-    weights = {measure: 1.0} if isinstance(measure, str) else dict(measure)
-    unknown = sorted(set(weights) - set(MEASURES))
-    if unknown:
-        raise ValueError(f"measure must be among {sorted(MEASURES)}, got {unknown}")
+    weights = measure_weights(measure)
     space = SettingsSpace.from_config(cfg)
     chosen = np.asarray(chosen, dtype=np.float64).reshape(-1)
     randoms = space.sample(num_random, seed)
