@@ -8,7 +8,9 @@
     torch-ampn-data check data/default
     torch-ampn-data spread data/default --split train --chaos 2   # do the settings matter?
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
+    torch-ampn-data convert run_001/d3plot --parts parts.yaml --out data/mine/train/run_001.pt   # LS-DYNA
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
+    torch-ampn-data export data/default/test/traj_200000.pt --out outputs/run --format d3plot
 
 ``generate`` runs :func:`torch_ampn.sim.generate_dataset` (dataset layout and seeds: see
 :mod:`torch_ampn.sim.dataset`); ``spread`` measures how far the settings move the plies
@@ -134,6 +136,20 @@ def _device(name: str) -> str:
     return name
 
 
+def _convert(path: Path, parts: Path | None) -> Trajectory:
+    """A d3plot (a file named ``d3plot*``, or a folder holding ``d3plot``) or a meshio time series."""
+    d3plot = path / "d3plot" if path.is_dir() and (path / "d3plot").is_file() else path
+    if d3plot.name.startswith("d3plot"):
+        from torch_ampn.data.d3plot_io import read_d3plot
+
+        return read_d3plot(d3plot, parts)
+    if parts is not None:
+        raise ValueError(f"--parts is for d3plot input; {path} is not a d3plot")
+    from torch_ampn.data.meshio_io import read_time_series
+
+    return read_time_series(path)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``torch-ampn-data``."""
     parser = argparse.ArgumentParser(prog="torch-ampn-data", description=__doc__.split("\n")[0])
@@ -173,12 +189,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--chaos", type=int, default=2, help="trajectories simulated again (default 2)")
     s.add_argument("--perturbation", type=float, default=1e-6, help="initial ply displacement, mm")
     s.add_argument("--json", type=Path, default=None, help="also write the numbers here")
-    c = sub.add_parser("convert", help="meshio time series (.xdmf or folder of .vtu) -> trajectory .pt")
-    c.add_argument("input", type=Path)
+    c = sub.add_parser(
+        "convert", help="LS-DYNA d3plot, or meshio time series (.xdmf or folder of .vtu) -> trajectory .pt"
+    )
+    c.add_argument("input", type=Path, help="run/d3plot, a .xdmf file or a folder of .vtu files")
     c.add_argument("--out", type=Path, required=True)
-    e = sub.add_parser("export", help="trajectory .pt -> XDMF time series for ParaView")
+    c.add_argument(
+        "--parts", type=Path, default=None, help="d3plot: the part map (default: parts.yaml beside it)"
+    )
+    e = sub.add_parser("export", help="trajectory .pt -> XDMF time series for ParaView, or a d3plot")
     e.add_argument("input", type=Path)
-    e.add_argument("--out", type=Path, required=True)
+    e.add_argument("--out", type=Path, required=True, help="a .xdmf file, or a folder with --format d3plot")
+    e.add_argument("--format", choices=["xdmf", "d3plot"], default="xdmf")
     args = parser.parse_args(argv)
     try:
         if args.command == "generate":
@@ -204,16 +226,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ValueError(f"--chaos must be >= 1, got {args.chaos}")
             return _spread(args.root, args.split, args.chaos, args.perturbation, args.json)
         elif args.command == "convert":
-            from torch_ampn.data.meshio_io import read_time_series
-
-            traj = read_time_series(args.input)
+            traj = _convert(args.input, args.parts)
             traj.save(args.out)
-            print(f"wrote {args.out}: {traj.num_nodes} nodes, {traj.num_steps} steps")
+            print(
+                f"wrote {args.out}: {traj.num_nodes} nodes, {traj.num_steps} steps, "
+                f"{traj.num_components} components, {traj.num_grippers} grippers"
+            )
+        elif args.format == "d3plot":
+            from torch_ampn.data.d3plot_io import write_d3plot
+
+            print(f"wrote {write_d3plot(Trajectory.load(args.input), args.out)} (and its parts.yaml)")
         else:
             from torch_ampn.data.meshio_io import export_xdmf
 
             print(f"wrote {export_xdmf(Trajectory.load(args.input), args.out)}")
-    except (TrajectoryFormatError, FileNotFoundError, ValueError) as err:
+    except (TrajectoryFormatError, FileNotFoundError, ValueError, ImportError) as err:
         print(f"torch-ampn-data: error: {err}", file=sys.stderr)
         return 2
     return 0
