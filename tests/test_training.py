@@ -479,6 +479,17 @@ def test_cli_fit_test_predict_end_to_end(tiny_fit, tmp_path, capsys):
         assert (predicted / name).is_file(), name
     info = json.loads((predicted / "wide.json").read_text())
     assert info["gripper_force"] == [90.0, 10.0]
+    # the same settings on a template (a run of the part, as one's own solver data would be)
+    mine = tmp_path / "on_template"
+    extra = [
+        "--data.predict_template",
+        str(data_dir / "test" / "traj_200000.pt"),
+        "--model.output_dir",
+        str(mine),
+    ]
+    main(_from_checkpoint("predict", ckpt, data_dir, out, "--data.predict_file", str(settings), *extra))
+    on_template = json.loads((mine / "predict" / "wide.json").read_text())
+    assert on_template["max_e3_displacement_mm"] == pytest.approx(info["max_e3_displacement_mm"], abs=1e-5)
 
     # settings given with --ckpt_path win where they do not change the network ...
     elsewhere = tmp_path / "elsewhere"

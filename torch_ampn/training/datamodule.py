@@ -54,7 +54,10 @@ class AMPNDataModule(L.LightningDataModule):
     * ``predict``: new process settings, from ``predict_file`` (JSON or YAML: a list of
       ``{"gripper_positions": [...], "gripper_forces": [...]}``, optional ``"name"``) or from
       ``predict_gripper_positions`` / ``predict_gripper_forces``; the tools and the mesh are
-      those of the dataset's simulator settings (``dataset.json``).
+      those of the dataset's simulator settings (``dataset.json``), or, with
+      ``predict_template``, those of a trajectory of one's own part (a converted solver run),
+      where a setting may also give ``gripper_nodes`` instead of ``gripper_positions``
+      (:func:`~torch_ampn.data.template.template_settings`).
 
     Args:
         data_dir: Dataset folder.
@@ -88,6 +91,9 @@ class AMPNDataModule(L.LightningDataModule):
         predict_file: Process settings to predict (JSON/YAML list).
         predict_gripper_positions: Or: one list of gripper edge fractions per setting.
         predict_gripper_forces: And: one list of gripper forces (N) per setting.
+        predict_template: A trajectory file (``.pt``) of one's own part whose mesh, components,
+            fibres and tool motion the predicted settings take (``None``: the embedded simulator's
+            part of ``dataset.json``).
         predict_batch_size: Settings rolled out together by ``predict`` (one batch on the fast
             path, :class:`~torch_ampn.fast_rollout.FastRollout`; outputs per setting as with 1).
         family: Generate a family of parts (:class:`~torch_ampn.sim.PartFamily` settings, or
@@ -131,6 +137,7 @@ class AMPNDataModule(L.LightningDataModule):
         predict_gripper_positions: list[list[float]] | None = None,
         predict_gripper_forces: list[list[float]] | None = None,
         predict_batch_size: int = 1,
+        predict_template: str | None = None,
         shuffle_seed: int | None = None,
         family: dict[str, Any] | str | None = None,
         prior: str | None = None,
@@ -281,21 +288,37 @@ class AMPNDataModule(L.LightningDataModule):
         return list(TrajectoryDataset(self.data_dir, "train", max_cached_mb=0))
 
     def _predict_split(self) -> RolloutDataset:
+        from torch_ampn.data.template import template_settings
         from torch_ampn.sim.simulate import process_trajectory
 
         settings, source = self._predict_settings()
-        cfg = self.simulator_config()
+        template = self._predict_template()
+        cfg = self.simulator_config() if template is None else None
         names = [s.get("name") or f"setting_{i:03d}" for i, s in enumerate(settings)]
         trajectories = []
         for i, s in enumerate(settings):  # all checked before the first rollout
             try:
-                trajectories.append(process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"]))
+                if template is None:
+                    traj = process_trajectory(cfg, s["gripper_positions"], s["gripper_forces"])
+                else:
+                    traj = template_settings(
+                        template, s["gripper_forces"], s.get("gripper_positions"), s.get("gripper_nodes")
+                    )
+                trajectories.append(traj)
             except (TypeError, ValueError) as err:
                 raise ValueError(f"{source}: setting {i} ({names[i]}): {err}") from None
         if self.hparams.get("prior") is not None:
             for traj in trajectories:
                 traj.prior = self.prior_baseline().predict(traj)
         return RolloutDataset(names, trajectories.__getitem__, self.hierarchies)
+
+    def _predict_template(self) -> Trajectory | None:
+        path = self.hparams.get("predict_template")
+        if path is None:
+            return None
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{path}: no such template trajectory (data.predict_template)")
+        return Trajectory.load(path)
 
     def predict_settings(self) -> list[dict[str, Any]]:
         """The process settings to predict, checked (errors name the file and the field)."""
@@ -341,7 +364,14 @@ class AMPNDataModule(L.LightningDataModule):
         if not isinstance(settings, list) or not settings:
             raise ValueError(f"{source}: expected a non-empty list of settings")
         for i, s in enumerate(settings):
-            for key in ("gripper_positions", "gripper_forces"):
+            where = "gripper_positions"
+            if hp.get("predict_template") and isinstance(s, dict) and "gripper_nodes" in s:
+                where = "gripper_nodes"  # a node of the template's first ply per gripper
+                if "gripper_positions" in s:
+                    raise ValueError(
+                        f"{source}: setting {i}: give gripper_positions or gripper_nodes, not both"
+                    )
+            for key in (where, "gripper_forces"):
                 if not isinstance(s, dict) or key not in s:
                     raise ValueError(f"{source}: setting {i} lacks field {key!r}")
                 values = s[key] if isinstance(s[key], list) else [s[key]]
@@ -427,7 +457,8 @@ class AMPNDataModule(L.LightningDataModule):
             return
         if split == "predict":
             keys = self.mesh_keys("predict")
-            unknown = [(self.data_dir / "dataset.json", n) for key, n in keys.items() if key not in known]
+            source = self.hparams.get("predict_template") or self.data_dir / "dataset.json"
+            unknown = [(source, n) for key, n in keys.items() if key not in known]
         else:
             found = (
                 (path, *file_topology_key(path))
@@ -437,7 +468,9 @@ class AMPNDataModule(L.LightningDataModule):
         if unknown:
             path, nodes = unknown[0]
             sizes = ", ".join(f"{n:,}" for n in sorted(set(known.values())))
-            what = "the simulator settings make" if split == "predict" else "its"
+            what = "its"
+            if split == "predict" and not self.hparams.get("predict_template"):
+                what = "the simulator settings make"
             raise ValueError(
                 f"{path}: {what} mesh ({nodes:,} nodes) is not one the model was trained on "
                 f"(meshes of {sizes} nodes); set model.check_mesh false to roll it out anyway"
