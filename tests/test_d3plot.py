@@ -10,7 +10,8 @@ import yaml
 
 from torch_ampn import data_cli
 from torch_ampn.data import Trajectory, TrajectoryFormatError
-from torch_ampn.data.d3plot_io import fibres_from_angle, read_d3plot, write_d3plot
+from torch_ampn.data.d3plot_io import read_d3plot, write_d3plot
+from torch_ampn.data.part_map import fibres_from_angle
 
 lasso = pytest.importorskip("lasso.dyna", reason="the d3plot extra (lasso-python) is not installed")
 D3plot, A = lasso.D3plot, lasso.ArrayType
@@ -101,7 +102,7 @@ def test_bad_part_maps_are_refused_in_one_line(small_runs, tmp_path):
             {**good, "parts": {k: v for k, v in good["parts"].items() if k != 6}},
             r"leaves parts \[6\] .* unassigned",
         ),
-        ({**good, "parts": {**good["parts"], 9: {"type": "die"}}}, r"parts \[9\] have no shells"),
+        ({**good, "parts": {**good["parts"], 9: {"type": "die"}}}, r"parts \[9\] have no cells"),
         ({**good, "parts": {**good["parts"], 5: {"type": "tool"}}}, r"'parts.5.type' must be one of"),
         (
             {
