@@ -9,6 +9,7 @@
     torch-ampn-data spread data/default --split train --chaos 2   # do the settings matter?
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data convert run_001/d3plot --parts parts.yaml --out data/mine/train/run_001.pt   # LS-DYNA
+    torch-ampn-data convert run_002.inp --parts parts.yaml --out data/mine/train/run_002.pt      # Abaqus
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/traj.xdmf
     torch-ampn-data export data/default/test/traj_200000.pt --out outputs/run --format d3plot
 
@@ -136,15 +137,25 @@ def _device(name: str) -> str:
     return name
 
 
-def _convert(path: Path, parts: Path | None) -> Trajectory:
-    """A d3plot (a file named ``d3plot*``, or a folder holding ``d3plot``) or a meshio time series."""
+def _convert(path: Path, parts: Path | None, displacements: Path | None = None) -> Trajectory:
+    """The trajectory of a solver's output.
+
+    A d3plot (a file named ``d3plot*``, or a folder holding ``d3plot``), an Abaqus deck with its
+    displacement table, or a meshio time series.
+    """
     d3plot = path / "d3plot" if path.is_dir() and (path / "d3plot").is_file() else path
+    if path.suffix.lower() == ".inp":
+        from torch_ampn.data.abaqus_io import read_abaqus
+
+        return read_abaqus(path, displacements, parts)
+    if displacements is not None:
+        raise ValueError(f"--displacements is for Abaqus .inp input; {path} is not one")
     if d3plot.name.startswith("d3plot"):
         from torch_ampn.data.d3plot_io import read_d3plot
 
         return read_d3plot(d3plot, parts)
     if parts is not None:
-        raise ValueError(f"--parts is for d3plot input; {path} is not a d3plot")
+        raise ValueError(f"--parts is for d3plot and .inp input; {path} is neither")
     from torch_ampn.data.meshio_io import read_time_series
 
     return read_time_series(path)
@@ -190,12 +201,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--perturbation", type=float, default=1e-6, help="initial ply displacement, mm")
     s.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     c = sub.add_parser(
-        "convert", help="LS-DYNA d3plot, or meshio time series (.xdmf or folder of .vtu) -> trajectory .pt"
+        "convert",
+        help="LS-DYNA d3plot, Abaqus .inp + ODB table, or meshio series (.xdmf, .vtu folder) -> .pt",
     )
-    c.add_argument("input", type=Path, help="run/d3plot, a .xdmf file or a folder of .vtu files")
+    c.add_argument(
+        "input", type=Path, help="run/d3plot, an Abaqus .inp, a .xdmf file or a folder of .vtu files"
+    )
     c.add_argument("--out", type=Path, required=True)
     c.add_argument(
-        "--parts", type=Path, default=None, help="d3plot: the part map (default: parts.yaml beside it)"
+        "--parts", type=Path, default=None, help="d3plot, .inp: the part map (default: parts.yaml beside it)"
+    )
+    c.add_argument(
+        "--displacements",
+        type=Path,
+        default=None,
+        help=".inp: the table of scripts/abaqus_odb_export.py (default: the deck's name with .npz)",
     )
     e = sub.add_parser("export", help="trajectory .pt -> XDMF time series for ParaView, or a d3plot")
     e.add_argument("input", type=Path)
@@ -226,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ValueError(f"--chaos must be >= 1, got {args.chaos}")
             return _spread(args.root, args.split, args.chaos, args.perturbation, args.json)
         elif args.command == "convert":
-            traj = _convert(args.input, args.parts)
+            traj = _convert(args.input, args.parts, args.displacements)
             traj.save(args.out)
             print(
                 f"wrote {args.out}: {traj.num_nodes} nodes, {traj.num_steps} steps, "
