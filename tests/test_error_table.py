@@ -9,10 +9,16 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 pytest.importorskip("lightning")
 
+from lasso.dyna import D3plot  # noqa: E402
+
 from torch_ampn.data import Trajectory  # noqa: E402
+from torch_ampn.data.abaqus_io import read_abaqus  # noqa: E402
+from torch_ampn.data.d3plot_io import read_d3plot, write_d3plot  # noqa: E402
+from torch_ampn.data.template import template_settings  # noqa: E402
 from torch_ampn.testing import small_trajectory  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
 from torch_ampn.training.cli import _check_checkpoint  # noqa: E402
@@ -61,6 +67,24 @@ def _cases(tmp: Path) -> list[tuple[str, object]]:
     small_trajectory().save(data / "train" / "traj_000000.pt")  # 3 components, 1 gripper
     model = AMPNLightningModule(hidden_channels=8, mlp_channels=8, num_levels=2).surrogate  # 6 and 2
     grippers = '"gripper_positions": [0.5, 0.5]'
+    run = write_d3plot(small_trajectory(), tmp / "run")  # a d3plot with its part map
+    spec = yaml.safe_load((tmp / "run" / "parts.yaml").read_text())
+    (tmp / "two_parts.yaml").write_text(
+        yaml.safe_dump({**spec, "parts": {1: spec["parts"][1], 2: spec["parts"][2]}})
+    )
+    tool = int(torch.nonzero(small_trajectory().node_type != 0)[0]) + 1
+    grip = [{**spec["grippers"][0], "nodes": [tool, *spec["grippers"][0]["nodes"][1:]]}]
+    (tmp / "tool_grip.yaml").write_text(yaml.safe_dump({**spec, "grippers": grip}))
+    empty = D3plot()
+    empty.arrays.update(
+        {k: v for k, v in D3plot(str(run)).arrays.items() if k not in ("node_displacement", "timesteps")}
+    )
+    (tmp / "static").mkdir()
+    empty.write_d3plot(str(tmp / "static" / "d3plot"))
+    (tmp / "deck.inp").write_text(
+        "*Heading\n*Part, name=PLY\n*Node\n1, 0, 0, 0\n*End Part\n*Instance, name=PLY-1\n"
+    )
+    (tmp / "deck.npz").write_bytes(b"")
     return [
         ("predict file: broken JSON", predict("broken.json", "[{" + grippers + ", ")),
         ("predict file: broken YAML",
@@ -95,6 +119,12 @@ def _cases(tmp: Path) -> list[tuple[str, object]]:
          lambda: _check_writable(tmp / "file" / "out", "model.output_dir")),
         ("simulator settings with an unknown key",
          lambda: AMPNDataModule(str(tmp / "gen"), simulator={"ply_cell": 4}).prepare_data()),
+        ("d3plot without displacements", lambda: read_d3plot(tmp / "static" / "d3plot", spec)),
+        ("part map that leaves parts unassigned", lambda: read_d3plot(run, tmp / "two_parts.yaml")),
+        ("part map with a gripper node on a tool", lambda: read_d3plot(run, tmp / "tool_grip.yaml")),
+        ("Abaqus deck with parts and instances", lambda: read_abaqus(tmp / "deck.inp", part_map=spec)),
+        ("predict on a template: a gripper node off the first ply",
+         lambda: template_settings(small_trajectory(), [1.0], gripper_nodes=[tool - 1])),
     ]  # fmt: skip
 
 
@@ -103,7 +133,10 @@ def test_every_bad_input_gets_one_line_naming_the_file_or_setting(tmp_path):
     for what, action in _cases(tmp_path):
         message = _message(action)
         assert "\n" not in message and message, what
-        assert str(tmp_path) in message or "data.simulator" in message, (what, message)
+        assert str(tmp_path) in message or "data.simulator" in message or "gripper_nodes" in message, (
+            what,
+            message,
+        )
         rows.append((what, message.replace(str(tmp_path), "DIR")))
     table = "| bad input | message |\n|---|---|\n" + "".join(
         f"| {what} | `{message.replace('|', '/')}` |\n" for what, message in rows
