@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# A separate virtual environment for the peers' benchmark (benchmarks/compare.py's
+# physicsnemo_* variants): NVIDIA PhysicsNeMo 2.2.2 needs psutil >= 6, lasso-python (the
+# d3plot extra, in the test environment) psutil 5, so they cannot share .venv. Installs
+# torch-ampn[train] with the pinned versions of constraints/ci.txt, PhysicsNeMo and pytest
+# into ${AMPN_PEERS_VENV:-.venv-peers}; idempotent. Source it to keep the venv active.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="${AMPN_PEERS_VENV:-$root/.venv-peers}"
+if [ ! -x "$venv/bin/python" ]; then
+    echo "[install-peers] creating virtual environment in $venv"
+    "${PYTHON:-python3}" -m venv "$venv"
+fi
+# shellcheck disable=SC1091
+source "$venv/bin/activate"
+stamp="$venv/.torch-ampn-peers-stamp"
+want="$(cat "$root/constraints/ci.txt" "$root/pyproject.toml" "${BASH_SOURCE[0]}" | sha256sum | cut -d' ' -f1)"
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    echo "[install-peers] installing torch-ampn[train], nvidia-physicsnemo==2.2.2 and pytest"
+    python -m pip install --quiet --disable-pip-version-check -c "$root/constraints/ci.txt" \
+        torch "nvidia-physicsnemo==2.2.2" pytest -e "$root[train]"
+    echo "$want" > "$stamp"
+fi
