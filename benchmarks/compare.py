@@ -13,6 +13,14 @@ coarse``, ``paper.yaml`` for ``paper``) with one change, trained for a fixed num
     k3              the paper's k = 3 contact neighbours (only where the base uses another k)
     prior           the AMPN reading the POD + GP prediction as input features (not in the paper:
                     ``model.prior_features``, ``data.prior pod_gp``; plain-path rollouts)
+    physicsnemo_hybrid      the peers' own code (not in the default list; ``source
+    physicsnemo_bsms        scripts/install_peers.sh`` first): NVIDIA PhysicsNeMo's
+    physicsnemo_hybrid_eq   HybridMeshGraphNet (mesh + world edges) and BiStrideMeshGraphNet
+    physicsnemo_bsms_eq     (BSMS-GNN) behind benchmarks/peers.py's adapters, PhysicsNeMo's
+                    defaults scaled as the quickstart scales the paper's network (width 128 -> 32,
+                    15 message-passing blocks -> 5: 84,771 and 99,139 parameters); ``_eq``: the
+                    width that gives about the AMPN's 70,851 parameters of the quickstart recipe
+                    (d = 29: 70,038; d = 27: 71,364). Plain-path rollouts, eager training.
 
 A cell (variant, seed) runs ``torch-ampn fit`` and ``torch-ampn test`` in subprocesses, then
 measures in this process: the rollout of one test trajectory for the figures, the contact
@@ -60,6 +68,8 @@ import yaml
 from torch_ampn._device import device_name
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # benchmarks.peers, the peers' adapters, for checkpoints of their cells
+    sys.path.insert(0, str(ROOT))
 STATE_FRACTIONS = (0.7, 0.9, 1.0)  # the process times of the paper's Fig. 2 and Fig. 3
 
 
@@ -86,6 +96,41 @@ VARIANTS = {
         "AMPN correcting the POD + GP prior", {"model.prior_features": True, "data.prior": "pod_gp"}
     ),
 }
+
+
+def _peer(label: str, cls: str, **options: Any) -> Variant:
+    """A PhysicsNeMo network in place of the AMPN (benchmarks/peers.py), fine level only, eager."""
+    return Variant(
+        label,
+        {
+            "model.network_class": f"benchmarks.peers:{cls}",
+            "model.network_options": options,
+            "model.num_levels": 1,
+            "model.compile_network": False,
+        },
+    )
+
+
+PEER_VARIANTS = {
+    "physicsnemo_hybrid": _peer(
+        "PhysicsNeMo HybridMeshGraphNet (d = 32, 5 blocks)", "PhysicsNeMoHybrid",
+        hidden_channels=32, processor_size=5,
+    ),
+    "physicsnemo_bsms": _peer(
+        "PhysicsNeMo BiStrideMeshGraphNet (d = 32, 5 blocks, 2 pooled levels)", "PhysicsNeMoBSMS",
+        hidden_channels=32, processor_size=5,
+    ),
+    "physicsnemo_hybrid_eq": _peer(
+        "PhysicsNeMo HybridMeshGraphNet, AMPN's parameter count (d = 29, 5 blocks)", "PhysicsNeMoHybrid",
+        hidden_channels=29, processor_size=5,
+    ),
+    "physicsnemo_bsms_eq": _peer(
+        "PhysicsNeMo BiStrideMeshGraphNet, AMPN's parameter count (d = 27, 5 blocks)", "PhysicsNeMoBSMS",
+        hidden_channels=27, processor_size=5,
+    ),
+}  # fmt: skip
+DEFAULT_VARIANTS = list(VARIANTS)  # the peers need their own environment
+VARIANTS.update(PEER_VARIANTS)
 BASE_CONFIGS = {"coarse": "examples/configs/quickstart.yaml", "paper": "examples/configs/paper.yaml"}
 
 
@@ -284,6 +329,8 @@ def measure(cell_dir: Path, config: dict, args: argparse.Namespace) -> dict[str,
         "contact_edges_per_step": _contact_edges_per_step(module, trajectories, dm.hierarchies),
         "parameters": count_parameters(module.surrogate),
         "layers": module.surrogate.model.num_layers,
+        # a peer applies each of its layers once; the AMPN's: layer_applications() of the config
+        "layer_applications": getattr(module.surrogate.model, "layer_applications", None),
         "num_levels": hp.num_levels,
     }
 
@@ -511,7 +558,7 @@ def table(
             if r2:
                 row["r2"], row["r2_std"] = _mean_std(r2)
             row.update(layers=done[0]["layers"], parameters=done[0]["parameters"], steps=done[0]["steps"])
-            row["layer_applications"] = layer_applications(
+            row["layer_applications"] = done[0].get("layer_applications") or layer_applications(
                 (base or {}).get("model", {}), done[0]["num_levels"]
             )
             row["simulator_seconds"] = _mean_std([c["simulator"]["fastest"] for c in done])[0]
@@ -551,17 +598,17 @@ def table(
 def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
     head = (
         "| model | RMSE [mm] | rollout [s] | speed-up vs simulator | contact edges / step (fine; all levels) "
-        "| layers (applied per call) | seeds | R² of the setting effect |\n"
-        "|---|---:|---:|---:|---:|---:|---|---:|"
+        "| layers (applied per call) | parameters | seeds | R² of the setting effect |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---|---:|"
     )
     lines = [head]
     for r in rows:
         r2 = f"{r['r2']:.2f}" if r.get("r2") is not None else ""
         if "seeds" not in r:  # a baseline
             kind = "reference" if r["variant"] == "simulator_rerun" else "baseline"
-            lines.append(f"| {r['label']} ({kind}) | {r['rmse']:.2f} | | | | | | {r2} |")
+            lines.append(f"| {r['label']} ({kind}) | {r['rmse']:.2f} | | | | | | | {r2} |")
         elif not r["seeds"]:
-            lines.append(f"| {r['label']} | missing | | | | | 0 of {len(seeds)} | |")
+            lines.append(f"| {r['label']} | missing | | | | | | 0 of {len(seeds)} | |")
         else:
             missing = f" (missing {', '.join(map(str, r['missing_seeds']))})" if r["missing_seeds"] else ""
             mark = "" if r.get("timed") else "*"  # * : the cell's own test time (machine shared)
@@ -570,7 +617,8 @@ def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
                 f"| {r['rollout_seconds']:.2f}{mark} "
                 f"| {r['speedup']:.1f}x{mark} "
                 f"| {r['contact_edges']:,.0f}; {r['contact_edges_all_levels']:,.0f} "
-                f"| {r['layers']} ({r['layer_applications']}) | {len(r['seeds'])}{missing} "
+                f"| {r['layers']} ({r['layer_applications']}) | {r['parameters']:,} "
+                f"| {len(r['seeds'])}{missing} "
                 + (f"| {r['r2']:.2f} ± {r['r2_std']:.2f} |" if "r2" in r else "| |")
             )
     if any("seeds" in r and r["seeds"] and not r.get("timed") for r in rows):
@@ -676,6 +724,8 @@ def figures(
 
 def report(args: argparse.Namespace, base: dict) -> dict[str, Any]:
     variants = [v for v in args.variants if applicable(v, base)]
+    found = {variant for variant, _ in load_cells(args.results)}
+    variants += [v for v in PEER_VARIANTS if v in found and v not in variants]  # the peers' rows, once run
     cells = {k: c for k, c in load_cells(args.results).items() if k[0] in variants and k[1] in args.seeds}
     rows = table(cells, variants, args.seeds, base)
     timed = args.results / "timings.json"
@@ -706,7 +756,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, choices=list(VARIANTS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument(
         "--steps", type=int, default=None, help="training steps per fit (default: the base config's)"

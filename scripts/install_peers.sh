@@ -2,8 +2,10 @@
 # A separate virtual environment for the peers' benchmark (benchmarks/compare.py's
 # physicsnemo_* variants): NVIDIA PhysicsNeMo 2.2.2 needs psutil >= 6, lasso-python (the
 # d3plot extra, in the test environment) psutil 5, so they cannot share .venv. Installs
-# torch-ampn[train] with the pinned versions of constraints/ci.txt, PhysicsNeMo and pytest
-# into ${AMPN_PEERS_VENV:-.venv-peers}; idempotent. Source it to keep the venv active.
+# torch-ampn[train] with the pinned versions of constraints/ci.txt, PhysicsNeMo, pytest and
+# torch-scatter (PhysicsNeMo's MeshGraphNets aggregate with it; built from source against the
+# installed torch: about 9 minutes on 2 cores, then pip's wheel cache) into
+# ${AMPN_PEERS_VENV:-.venv-peers}; idempotent. Source it to keep the venv active.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="${AMPN_PEERS_VENV:-$root/.venv-peers}"
@@ -18,6 +20,8 @@ want="$(cat "$root/constraints/ci.txt" "$root/pyproject.toml" "${BASH_SOURCE[0]}
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     echo "[install-peers] installing torch-ampn[train], nvidia-physicsnemo==2.2.2 and pytest"
     python -m pip install --quiet --disable-pip-version-check -c "$root/constraints/ci.txt" \
-        torch "nvidia-physicsnemo==2.2.2" pytest -e "$root[train]"
+        torch "nvidia-physicsnemo==2.2.2" pytest pytest-xdist -e "$root[train]"
+    echo "[install-peers] building torch-scatter 2.1.2 against torch $(python -c 'import torch; print(torch.__version__)')"
+    python -m pip install --quiet --disable-pip-version-check --no-build-isolation "torch-scatter==2.1.2"
     echo "$want" > "$stamp"
 fi

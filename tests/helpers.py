@@ -157,3 +157,39 @@ class SigkillAtStep(L.Callback):
         if self.expect is not None and not Path(self.expect).is_file():
             raise RuntimeError(f"SigkillAtStep: {self.expect} does not exist at step {self.step}")
         os.kill(os.getpid(), signal.SIGKILL)
+
+
+class PointwiseNetwork(nn.Module):
+    """A stand-in for ``AMPNSurrogate(network_class=...)``: a linear map of each fine node's input.
+
+    Built and called as the surrogate builds and calls a network; it records the ``x_dict`` of
+    its last call (``last_x_dict``). ``helpers:PositionsNetwork`` asks for the positions too.
+    """
+
+    step_encoding = None
+    needs_positions = False
+
+    def __init__(
+        self,
+        fine_in_channels: int,
+        num_levels: int = 1,
+        noise_channels: int = 3,
+        num_step_frequencies: int = 0,
+        max_step: int = 1,
+        scale: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.noise_channels, self.out_channels, self.num_layers = noise_channels, 3, 1
+        self.linear = nn.Linear(fine_in_channels + noise_channels, 3)
+        self.scale = scale
+        self.last_x_dict: dict[str, Tensor] = {}
+
+    def forward(self, x_dict, edge_index_dict, edge_attr_dict, noise=None, step=None, **kwargs) -> Tensor:
+        self.last_x_dict = dict(x_dict)
+        return self.scale * self.linear(torch.cat([x_dict["l0"], noise], dim=-1))
+
+
+class PositionsNetwork(PointwiseNetwork):
+    """:class:`PointwiseNetwork` with ``needs_positions = True``."""
+
+    needs_positions = True

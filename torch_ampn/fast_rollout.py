@@ -134,6 +134,8 @@ def fast_path_supported(surrogate: AMPNSurrogate) -> str | None:
     """``None`` if :class:`FastRollout` supports ``surrogate``, else the reason why not."""
     if surrogate.contact.mode != "component_knn":
         return f"contact mode {surrogate.contact.mode!r} has no fixed-size contact tables"
+    if getattr(surrogate, "network_class", None) is not None:
+        return f"network_class {surrogate.network_class!r} is not an AMPN"
     return None
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -69,6 +70,17 @@ class AMPNSurrogate(nn.Module):
             (:func:`~torch_ampn.nn.features.prior_features`: 6 more fine-node columns), so that
             the network learns a correction of the prior; the windows must then carry it
             (:attr:`~torch_ampn.data.Trajectory.prior`; rollouts read it from there too).
+        network_class: Another network in place of the AMPN, as ``"package.module:Class"`` (e.g.
+            a peer's model behind an adapter, ``benchmarks/peers.py``). It is built as
+            ``Class(fine_in_channels, num_levels=..., noise_channels=3, num_step_frequencies=...,
+            max_step=..., **network_options)`` and called like :meth:`AMPN.forward
+            <torch_ampn.nn.AMPN.forward>`; it must have the attributes ``noise_channels``,
+            ``out_channels``, ``step_encoding`` (``None`` without step conditioning) and
+            ``num_layers``. With ``needs_positions = True`` on the class, ``x_dict`` also
+            carries the normalised current and initial ``l0`` positions (``"pos"``, ``"pos0"``,
+            ``[N_0, 3]``). The AMPN's own arguments (``**network``) are then unused. Rollouts of
+            such a network take the plain path (:func:`~torch_ampn.rollout.rollout`).
+        network_options: Keyword arguments of ``network_class``.
         **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
@@ -92,6 +104,8 @@ class AMPNSurrogate(nn.Module):
         coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
         prior_features: bool = False,
+        network_class: str | None = None,
+        network_options: dict[str, Any] | None = None,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -125,14 +139,17 @@ class AMPNSurrogate(nn.Module):
         fine_in = num_fine_node_features(
             num_components, num_grippers, component_encoding=component_encoding, prior=self.prior_features
         )
-        model = AMPN(
-            fine_in,
-            num_levels=num_levels,
-            noise_channels=3,  # ROBIN's noise input: the noisy target (K = 1: pure N(0, 1) noise)
-            num_step_frequencies=4 if diffusion_steps > 1 else 0,
-            max_step=max(diffusion_steps - 1, 1),
-            **network,
-        )
+        self.network_class = network_class
+        common = {
+            "num_levels": num_levels,
+            "noise_channels": 3,  # ROBIN's noise input: the noisy target (K = 1: pure N(0, 1) noise)
+            "num_step_frequencies": 4 if diffusion_steps > 1 else 0,
+            "max_step": max(diffusion_steps - 1, 1),
+        }
+        if network_class is None:
+            model = AMPN(fine_in, **common, **network)
+        else:
+            model = import_network_class(network_class)(fine_in, **common, **(network_options or {}))
         self.diffusion = DiffusionAMPN(model, diffusion_steps)
         self.node_norm = nn.ModuleDict(
             {"fine": Normalizer(fine_in), "coarse": Normalizer(num_coarse_node_features())}
@@ -143,7 +160,7 @@ class AMPNSurrogate(nn.Module):
 
     @property
     def model(self) -> AMPN:
-        """The network."""
+        """The network (an :class:`~torch_ampn.nn.AMPN` unless ``network_class`` is set)."""
         return self.diffusion.model
 
     @property
@@ -209,6 +226,10 @@ class AMPNSurrogate(nn.Module):
         x_dict, e_dict = self._raw_features(data)
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
+        if getattr(self.model, "needs_positions", False):
+            fine = data["l0"]
+            x_dict["pos"] = self.position_norm(fine.pos)  # [N_0, 3]
+            x_dict["pos0"] = self.position_norm(fine.pos0)  # [N_0, 3]
         device = data["l0"].pos.device
         empty = torch.empty(2, 0, dtype=torch.long, device=device)
         index_dict = {key: data[key].edge_index if key in data.edge_types else empty for key in e_dict}
@@ -310,4 +331,22 @@ class AMPNSurrogate(nn.Module):
             + (", predict_change=True" if self.predict_change else "")
             + (f", component_encoding={encoding!r}" if encoding != "onehot" else "")
             + (", prior_features=True" if self.prior_features else "")
+            + (f", network_class={self.network_class!r}" if self.network_class else "")
         )
+
+
+def import_network_class(path: str) -> type[nn.Module]:
+    """The class ``"package.module:Class"`` (or ``"package.module.Class"``) names; one-line errors."""
+    module_name, sep, name = path.partition(":")
+    if not sep:
+        module_name, _, name = path.rpartition(".")
+    if not module_name or not name:
+        raise ValueError(f"network_class: {path!r} is not 'package.module:Class'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ValueError(f"network_class: cannot import {module_name!r} ({err})") from None
+    cls = getattr(module, name, None)
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise ValueError(f"network_class: {module_name!r} has no torch.nn.Module class {name!r}")
+    return cls

@@ -59,6 +59,8 @@ SURROGATE_ARGUMENTS = (
     "coarse_loss_weight",
     "component_encoding",
     "prior_features",
+    "network_class",
+    "network_options",
 )
 
 
@@ -99,6 +101,10 @@ class AMPNLightningModule(L.LightningModule):
         prior_features: Take a prior trajectory (the data module's ``prior``, e.g. POD + GP) as
             input and learn its correction (:func:`~torch_ampn.nn.features.prior_features`);
             rollouts then take the plain path.
+        network_class: Another network in place of the AMPN (``"package.module:Class"``, e.g. a
+            peer's model behind an adapter; see :class:`~torch_ampn.nn.AMPNSurrogate`); the AMPN's
+            layer arguments below are then unused, and rollouts take the plain path.
+        network_options: Keyword arguments of ``network_class``.
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -183,6 +189,8 @@ class AMPNLightningModule(L.LightningModule):
         coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
         prior_features: bool = False,
+        network_class: str | None = None,
+        network_options: dict[str, Any] | None = None,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
