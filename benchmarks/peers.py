@@ -119,6 +119,16 @@ def _pad(attr: Tensor, width: int) -> Tensor:
     return torch.nn.functional.pad(attr, (0, width - attr.size(1)))
 
 
+def _mgn_sizes(processor_size: int, hidden: int, mlp_layers: int, aggregation: str) -> dict[str, Any]:
+    """The size arguments every PhysicsNeMo MeshGraphNet takes: one width and one MLP depth throughout."""
+    sizes: dict[str, Any] = {"processor_size": processor_size, "aggregation": aggregation}
+    for part in ("processor", "node_encoder", "edge_encoder", "node_decoder"):
+        sizes[f"hidden_dim_{part}"] = hidden
+    for part in ("node_processor", "edge_processor", "node_encoder", "edge_encoder", "node_decoder"):
+        sizes[f"num_layers_{part}"] = mlp_layers
+    return sizes
+
+
 class _PeerAdapter(nn.Module):
     """What :class:`~torch_ampn.nn.DiffusionAMPN` and the surrogate read of a network."""
 
@@ -139,6 +149,20 @@ class _PeerAdapter(nn.Module):
     def layer_applications(self) -> int:
         """Message-passing layers applied per call: each of the peer's ``num_layers`` once."""
         return self.num_layers
+
+    def _inputs(
+        self,
+        x_dict: dict[str, Tensor],
+        edge_index_dict: dict,
+        edge_attr_dict: dict,
+        noise: Tensor | None,
+        contact_mask_dict: dict | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """``(x [N_0, F + 3], mesh index [2, E_m], mesh features [E_m, 8], contact index, features)``."""
+        x = self._node_input(x_dict, noise)
+        mesh = edge_type("mesh", 0)
+        contact = _contact_edges(edge_index_dict, edge_attr_dict, contact_mask_dict, x)
+        return x, edge_index_dict[mesh], edge_attr_dict[mesh], *contact
 
     def _node_input(self, x_dict: dict[str, Tensor], noise: Tensor | None) -> Tensor:
         x = x_dict["l0"]  # [N_0, F]
@@ -183,12 +207,7 @@ class PhysicsNeMoHybrid(_PeerAdapter):
         self.num_layers = processor_size
         self.net = peer.HybridMeshGraphNet(
             fine_in_channels + noise_channels, MESH_EDGE_CHANNELS, out_channels,
-            processor_size=processor_size, num_layers_node_processor=mlp_layers,
-            num_layers_edge_processor=mlp_layers, hidden_dim_processor=hidden_channels,
-            hidden_dim_node_encoder=hidden_channels, num_layers_node_encoder=mlp_layers,
-            hidden_dim_edge_encoder=hidden_channels, num_layers_edge_encoder=mlp_layers,
-            hidden_dim_node_decoder=hidden_channels, num_layers_node_decoder=mlp_layers,
-            aggregation=aggregation,
+            **_mgn_sizes(processor_size, hidden_channels, mlp_layers, aggregation),
         )  # fmt: skip
 
     def forward(
@@ -205,10 +224,9 @@ class PhysicsNeMoHybrid(_PeerAdapter):
         """The peer's output ``[N_0, out_channels]`` (arguments as :meth:`torch_ampn.nn.AMPN.forward`)."""
         from torch_geometric.data import Data
 
-        x = self._node_input(x_dict, noise)
-        mesh = edge_type("mesh", 0)
-        mesh_index, mesh_attr = edge_index_dict[mesh], edge_attr_dict[mesh]  # [2, E_m], [E_m, 8]
-        world_index, world_attr = _contact_edges(edge_index_dict, edge_attr_dict, contact_mask_dict, x)
+        x, mesh_index, mesh_attr, world_index, world_attr = self._inputs(
+            x_dict, edge_index_dict, edge_attr_dict, noise, contact_mask_dict
+        )
         graph = Data(edge_index=torch.cat([mesh_index, world_index], dim=1), num_nodes=x.size(0))
         return self.net(x, mesh_attr, _pad(world_attr, MESH_EDGE_CHANNELS), graph)
 
@@ -261,13 +279,9 @@ class PhysicsNeMoBSMS(_PeerAdapter):
         self.num_layers = processor_size + bistride_unet_levels * (2 * num_mesh_levels + 1)
         self.net = peer.BiStrideMeshGraphNet(
             fine_in_channels + noise_channels, MESH_EDGE_CHANNELS + 1, out_channels,
-            processor_size=processor_size, num_layers_node_processor=mlp_layers,
-            num_layers_edge_processor=mlp_layers, num_mesh_levels=num_mesh_levels, bistride_pos_dim=3,
-            num_layers_bistride=mlp_layers, bistride_unet_levels=bistride_unet_levels,
-            hidden_dim_processor=hidden_channels, hidden_dim_node_encoder=hidden_channels,
-            num_layers_node_encoder=mlp_layers, hidden_dim_edge_encoder=hidden_channels,
-            num_layers_edge_encoder=mlp_layers, hidden_dim_node_decoder=hidden_channels,
-            num_layers_node_decoder=mlp_layers, aggregation=aggregation,
+            num_mesh_levels=num_mesh_levels, bistride_pos_dim=3, num_layers_bistride=mlp_layers,
+            bistride_unet_levels=bistride_unet_levels,
+            **_mgn_sizes(processor_size, hidden_channels, mlp_layers, aggregation),
         )  # fmt: skip
         self._hierarchies: dict[str, tuple[list[Tensor], list[Tensor]]] = {}
 
@@ -303,10 +317,9 @@ class PhysicsNeMoBSMS(_PeerAdapter):
         """The peer's output ``[N_0, out_channels]``; ``x_dict`` also holds ``"pos"`` and ``"pos0"``."""
         from torch_geometric.data import Data
 
-        x = self._node_input(x_dict, noise)
-        mesh = edge_type("mesh", 0)
-        mesh_index, mesh_attr = edge_index_dict[mesh], edge_attr_dict[mesh]
-        contact_index, contact_attr = _contact_edges(edge_index_dict, edge_attr_dict, contact_mask_dict, x)
+        x, mesh_index, mesh_attr, contact_index, contact_attr = self._inputs(
+            x_dict, edge_index_dict, edge_attr_dict, noise, contact_mask_dict
+        )
         kind = torch.cat(
             [mesh_attr.new_zeros(mesh_attr.size(0), 1), mesh_attr.new_ones(contact_attr.size(0), 1)]
         )
