@@ -13,8 +13,10 @@ from torch_ampn.design import (
     settings_objective,
     settings_trajectories,
     simulator_predictor,
+    spearman_ceiling,
     verify_choice,
 )
+from torch_ampn.design.measures import part_quality
 from torch_ampn.sim import simulate_batch
 from torch_ampn.sim.simulate import sample_process
 
@@ -105,6 +107,43 @@ def test_verify_with_the_simulator_as_its_own_predictor(small_sim):
     assert check.to_dict()["percentile"] == (check.rank - 1) / 4
     with pytest.raises(ValueError, match="at least 2 random settings"):
         verify_choice(small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=1)
+
+
+def test_runs_judge_each_setting_by_its_mean_over_perturbed_simulations(small_sim):
+    """Run 0 is the unperturbed simulator, run k the simulator from its own moved start; mean by hand."""
+    from scipy.stats import spearmanr
+
+    chosen = np.array([0.5, 0.5, 50.0, 50.0])
+    check = verify_choice(
+        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2,
+        runs=3, repeat=1e-3,
+    )  # fmt: skip
+    runs = check.run_measures["draw_in_mean"]  # [3, 4]
+    assert check.runs == 3 and runs.shape == (3, 4) and check.run_objective.shape == (3, 4)
+    np.testing.assert_array_equal(runs[0], check.predicted_measures["draw_in_mean"])  # eager: equal
+    np.testing.assert_allclose(check.simulated_measures["draw_in_mean"], runs.mean(axis=0))
+    assert check.chosen_simulated == pytest.approx(runs[:, 0].mean())
+    assert check.rank == 1 + int((runs[:, 1:].mean(0) < runs[:, 0].mean()).sum())
+    # run 2 of the chosen setting (index 0 of 4 settings): seed 2 * 4, moved by 1e-3 mm, judged
+    # against the part's unmoved start
+    where, force = [float(v) for v in chosen[:2]], [float(v) for v in chosen[2:]]
+    again = simulate_batch(small_sim, [8], settings=[(where, force)], perturbation=1e-3)[0]
+    part = settings_trajectories(small_sim, SettingsSpace.from_config(small_sim), chosen[None])[0]
+    assert part_quality(part, again.pos[-1])["draw_in_mean"] == pytest.approx(runs[2, 0], rel=1e-9)
+    assert not np.array_equal(runs[1], runs[2])  # each run its own perturbation
+    pairs = [spearmanr(runs[i, 1:], runs[j, 1:]).statistic for i, j in [(0, 1), (0, 2), (1, 2)]]
+    assert check.repeat_spearman_by_measure["draw_in_mean"] == pytest.approx(np.mean(pairs))
+    assert check.repeat == 1e-3 and check.to_dict()["runs"] == 3
+    with pytest.raises(ValueError, match="runs must be >= 1"):
+        verify_choice(small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", runs=0)
+
+
+def test_the_spearman_ceiling_by_hand():
+    """One run: sqrt(r); R runs: sqrt(R r / (1 + (R - 1) r)) (Spearman-Brown); none without a positive r."""
+    assert spearman_ceiling(0.25) == pytest.approx(0.5)
+    assert spearman_ceiling(0.25, runs=3) == pytest.approx(np.sqrt(0.75 / 1.5))
+    assert spearman_ceiling(1.0, runs=4) == pytest.approx(1.0)
+    assert np.isnan(spearman_ceiling(0.0)) and np.isnan(spearman_ceiling(float("nan")))
 
 
 def test_a_baseline_predictor_gives_the_last_state(small_runs, small_sim):

@@ -39,7 +39,7 @@ from torch_ampn.design.search import (
     settings_objective,
     settings_trajectories,
 )
-from torch_ampn.design.verify import Verification, measures_of, verify_choice
+from torch_ampn.design.verify import Verification, measures_of, spearman_ceiling, verify_choice
 
 __all__ = [
     "FIELDS",
@@ -69,6 +69,7 @@ __all__ = [
     "settings_objective",
     "settings_trajectories",
     "shear_field",
+    "spearman_ceiling",
     "simulator_predictor",
     "surrogate_predictor",
     "verify_choice",

@@ -152,7 +152,13 @@ def plot_verification(path: str | Path, check: Verification, label: str) -> None
     import matplotlib.pyplot as plt
 
     fig, (ax, bars) = plt.subplots(1, 2, figsize=(10.0, 4.5), gridspec_kw={"width_ratios": [1, 1.1]})
-    ax.scatter(check.random_simulated, check.random_predicted, s=18, label="random settings")
+    if check.runs > 1:  # the spread of the runs: the chaos left in each simulated point
+        spread = check.run_objective[:, 1:].std(axis=0)  # [N]
+        ax.errorbar(
+            check.random_simulated, check.random_predicted, xerr=spread, fmt="none", ecolor="0.7", lw=0.8
+        )
+    runs = f" (mean of {check.runs} runs)" if check.runs > 1 else ""
+    ax.scatter(check.random_simulated, check.random_predicted, s=18, label="random settings" + runs)
     ax.scatter([check.chosen_simulated], [check.chosen_predicted], c="r", marker="*", s=160, label="chosen")
     lim = [
         min(check.random_simulated.min(), check.random_predicted.min(), check.chosen_simulated),
@@ -171,7 +177,9 @@ def plot_verification(path: str | Path, check: Verification, label: str) -> None
     bars.barh(at + (0.2 if check.repeat else 0), rho, height=0.4, label="predicted vs simulated")
     if check.repeat:
         again = [np.nan_to_num(check.repeat_spearman_by_measure[n]) for n in names]
-        bars.barh(at - 0.2, again, height=0.4, color="0.6", label=f"simulated vs again ({check.repeat:g} mm)")
+        bars.barh(at - 0.2, again, height=0.4, color="0.6", label=f"one run vs another ({check.repeat:g} mm)")
+        ceiling = [check.spearman_ceiling(n) for n in names]
+        bars.scatter(ceiling, at + 0.2, marker="|", s=200, c="k", label="chaos-free predictor, about")
     bars.set_yticks(at, names)
     bars.axvline(0, color="k", lw=0.8)
     bars.set_xlim(-1, 1)

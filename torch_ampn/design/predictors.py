@@ -41,12 +41,14 @@ def simulator_predictor(
     batch_size: int = 16,
     progress: bool = False,
     perturbation: float = 0.0,
+    seed_offset: int = 0,
 ) -> Predictor:
     """The embedded simulator for each trajectory's recorded settings (``batch_size`` at a time).
 
     Reads the gripper settings from ``meta["gripper_edge_fraction"]`` and ``gripper_force``.
-    ``perturbation``: start each from ply positions moved by up to this many mm (seeded by the
-    setting's place in the call; see :func:`~torch_ampn.sim.simulate_batch`).
+    ``perturbation``: start each from ply positions moved by up to this many mm, seeded by
+    ``seed_offset`` + the setting's place in the call (another offset: another perturbation; see
+    :func:`~torch_ampn.sim.simulate_batch`).
     """
     from torch_ampn.sim import simulate_batch
 
@@ -60,7 +62,7 @@ def simulator_predictor(
             starts = tqdm(starts, desc="simulate", unit="batch")
         for i in starts:
             part = settings[i : i + batch_size]
-            seeds = range(i, i + len(part))
+            seeds = range(seed_offset + i, seed_offset + i + len(part))
             trajs = simulate_batch(cfg, seeds, settings=part, compile=compile, perturbation=perturbation)
             out += [t.pos for t in trajs]
         return out

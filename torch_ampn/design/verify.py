@@ -6,6 +6,10 @@ Where the chosen setting ranks among random settings, how well the predictor ran
 random settings are simulated a second time from a start moved by ``repeat`` mm: the
 simulator's rank correlation with itself, ``r``, measures the forming's chaos: a predictor of
 the chaos-free measure reaches about ``sqrt(r)`` against one simulated run (``docs/design.md``).
+With ``runs = R`` every setting is simulated ``R`` times (all but the first from a start moved
+by ``repeat`` mm, each its own perturbation) and judged by its mean measure, whose chaos is
+``R`` times smaller in variance: the ceiling rises to about ``sqrt(R r / (1 + (R - 1) r))``
+(Spearman-Brown), :meth:`Verification.spearman_ceiling`.
 """
 
 from __future__ import annotations
@@ -37,6 +41,25 @@ def _objective(measures: dict[str, np.ndarray], weights: dict[str, float]) -> np
     return sum(w * measures[name] for name, w in weights.items())
 
 
+def _mean_pairwise_spearman(runs: Sequence[np.ndarray]) -> float:
+    """The mean rank correlation over every pair of runs ``[N]`` each (NaN if a pair has none)."""
+    pairs = [_spearman(a, b) for i, a in enumerate(runs) for b in runs[i + 1 :]]
+    return float(np.mean(pairs)) if pairs else float("nan")
+
+
+def spearman_ceiling(r: float, runs: int = 1) -> float:
+    """About the best Spearman of a chaos-free predictor against the mean of ``runs`` runs.
+
+    ``r`` is the simulator's rank correlation with itself between two single runs. Averaging
+    ``runs`` runs shrinks the chaos's variance ``runs`` times, so the mean's correlation with
+    another such mean is ``runs r / (1 + (runs - 1) r)`` (Spearman-Brown) and a perfect
+    predictor's correlation with it the square root. NaN where ``r`` is not positive.
+    """
+    if not r > 0:
+        return float("nan")
+    return float(np.sqrt(runs * r / (1 + (runs - 1) * r)))
+
+
 @dataclass
 class Verification:
     """The simulated check of a chosen setting against ``N`` random ones (lower measure = better).
@@ -61,6 +84,10 @@ class Verification:
         repeat_spearman: Simulated against simulated again, objective (``spearman`` stays below
             about its square root).
         repeat_spearman_by_measure: The same per measure.
+        runs: How many times each setting was simulated; the simulated measures, ``rank`` and
+            ``spearman`` are the mean over the runs.
+        run_measures: With ``runs > 1``: every run's measures, name -> ``[runs, 1 + N]``.
+        run_objective: With ``runs > 1``: every run's objective ``[runs, 1 + N]``.
     """
 
     chosen: np.ndarray
@@ -80,6 +107,9 @@ class Verification:
     repeat_measures: dict[str, np.ndarray] = field(default_factory=dict)
     repeat_spearman: float = float("nan")
     repeat_spearman_by_measure: dict[str, float] = field(default_factory=dict)
+    runs: int = 1
+    run_measures: dict[str, np.ndarray] = field(default_factory=dict)
+    run_objective: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     #: Further settings simulated beside the choice (e.g. a refined one): name -> their
     #: ``settings``, ``predicted`` and ``simulated`` objective and ``rank`` among the random ones.
     alternatives: dict[str, dict] = field(default_factory=dict)
@@ -90,6 +120,15 @@ class Verification:
     def percentile(self) -> float:
         """The chosen setting's place among the ``N + 1`` simulated, as a fraction (0: the best)."""
         return (self.rank - 1) / (len(self.random_simulated) + 1)
+
+    def spearman_ceiling(self, measure: str | None = None) -> float:
+        """About the best ``spearman`` any predictor reaches here, from the simulator's chaos.
+
+        :func:`spearman_ceiling` of ``repeat_spearman`` (or of ``measure``'s) and ``runs``; NaN
+        without a repeated simulation.
+        """
+        r = self.repeat_spearman if measure is None else self.repeat_spearman_by_measure.get(measure, np.nan)
+        return spearman_ceiling(r, self.runs)
 
     def to_dict(self) -> dict:
         """JSON-ready (NaN correlations become ``None``)."""
@@ -105,6 +144,10 @@ class Verification:
 
         out = {k: plain(v) for k, v in asdict(self).items() if k != "chosen_final"}
         out["percentile"] = self.percentile
+        out["spearman_ceiling"] = plain(self.spearman_ceiling())
+        out["spearman_ceiling_by_measure"] = {
+            n: plain(self.spearman_ceiling(n)) for n in self.repeat_spearman_by_measure
+        }
         return out
 
 
@@ -137,6 +180,7 @@ def verify_choice(
     progress: bool = False,
     repeat: float = 0.0,
     alternatives: dict[str, np.ndarray] | None = None,
+    runs: int = 1,
 ) -> Verification:
     """Simulate ``chosen`` and ``num_random`` random settings; compare with the predictor's measures.
 
@@ -154,6 +198,10 @@ def verify_choice(
             (e.g. ``1e-6``) and report the simulator's rank correlation with itself (0: don't).
         alternatives: Further settings ``[D]`` by name to simulate and rank in the same run
             (e.g. ``{"refined": refine_settings(...).best}``).
+        runs: Simulate every setting this many times, all runs but the first from a start
+            moved by ``repeat`` mm (``1e-6`` where ``repeat`` is 0), and judge each setting by
+            its mean measure over the runs: the chaos of one run averaged out. ``repeat_spearman``
+            is then the mean rank correlation between two runs, with no extra simulation.
     """
     if num_random < 2:
         raise ValueError(
@@ -161,6 +209,10 @@ def verify_choice(
         )
     if repeat < 0:
         raise ValueError(f"repeat must be >= 0 mm, got {repeat}")
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    if runs > 1 and repeat == 0:
+        repeat = 1e-6
     weights = measure_weights(measure)
     space = SettingsSpace.from_config(cfg)
     chosen = np.asarray(chosen, dtype=np.float64).reshape(-1)
@@ -171,8 +223,16 @@ def verify_choice(
     pred, pred_finals = _measures_and_finals(predict, cfg, x, wrinkle_radius)
     predict_seconds = time.perf_counter() - start
     start = time.perf_counter()
-    simulator = simulator_predictor(cfg, compile=compile, progress=progress)
-    sim, sim_finals = _measures_and_finals(simulator, cfg, x, wrinkle_radius)
+    each_run = []  # [runs] of name -> [len(x)]
+    for k in range(runs):
+        simulator = simulator_predictor(
+            cfg, compile=compile, progress=progress, perturbation=repeat if k else 0.0, seed_offset=k * len(x)
+        )
+        measures, finals = _measures_and_finals(simulator, cfg, x, wrinkle_radius)
+        each_run.append(measures)
+        if k == 0:
+            sim_finals = finals  # the unperturbed run's final states
+    sim = {name: np.mean([m[name] for m in each_run], axis=0) for name in MEASURES}
     simulate_seconds = time.perf_counter() - start
     pred_obj, sim_obj = _objective(pred, weights), _objective(sim, weights)
     n = num_random + 1  # the chosen and the random settings; the alternatives after them
@@ -201,14 +261,22 @@ def verify_choice(
         alternatives=ranked,
         chosen_final={"predicted": pred_finals[0], "simulated": sim_finals[0]},
     )
-    if repeat > 0:
+    randoms_of = [{k: v[1:n] for k, v in m.items()} for m in each_run]  # [runs] of name -> [N]
+    if runs == 1 and repeat > 0:  # one more run, of the random settings only
         again = simulator_predictor(cfg, compile=compile, progress=progress, perturbation=repeat)
-        rep = measures_of(again, cfg, randoms, wrinkle_radius)
+        randoms_of.append(measures_of(again, cfg, randoms, wrinkle_radius))
+    if len(randoms_of) > 1:
         check.repeat = repeat
-        check.repeat_measures = rep
-        check.repeat_spearman = _spearman(sim_obj[1:], _objective(rep, weights))
-        check.repeat_spearman_by_measure = {n: _spearman(sim[n][1:], rep[n]) for n in MEASURES}
+        check.repeat_measures = randoms_of[1]
+        check.repeat_spearman = _mean_pairwise_spearman([_objective(m, weights) for m in randoms_of])
+        check.repeat_spearman_by_measure = {
+            name: _mean_pairwise_spearman([m[name] for m in randoms_of]) for name in MEASURES
+        }
+    if runs > 1:
+        check.runs = runs
+        check.run_measures = {name: np.stack([m[name][:n] for m in each_run]) for name in MEASURES}
+        check.run_objective = np.stack([_objective(m, weights)[:n] for m in each_run])
     return check
 
 
-__all__ = ["Verification", "measures_of", "verify_choice"]
+__all__ = ["Verification", "measures_of", "spearman_ceiling", "verify_choice"]
