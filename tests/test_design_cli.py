@@ -61,6 +61,8 @@ def test_bad_input_ends_in_one_line(tiny_data, tmp_path, monkeypatch, capsys):
         (["--baseline", "pod_gp", "--measure", "smoothness"], "--measure: measure must be among"),
         (["--checkpoint", str(tmp_path / "none.ckpt")], "no such checkpoint"),
         (["--baseline", "pod_gp", "--map", "force_0", "force_0"], "--map needs two different names"),
+        (["--baseline", "pod_gp", "--verify", "4", "--runs", "0"], "--runs must be >= 1"),
+        (["--baseline", "pod_gp", "--runs", "3"], "--runs 3 needs --verify N"),
     ]:
         monkeypatch.setattr(
             sys, "argv", ["torch-ampn", "design", str(tiny_data), "--out", str(tmp_path), *args]

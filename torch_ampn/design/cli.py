@@ -101,6 +101,12 @@ def run(args: argparse.Namespace) -> dict:
     from torch_ampn.design.verify import verify_choice
     from torch_ampn.training import AMPNDataModule
 
+    if args.runs < 1:
+        raise ValueError(f"--runs must be >= 1, got {args.runs}")
+    if args.runs > 1 and not args.verify:
+        raise ValueError(
+            f"--runs {args.runs} needs --verify N: it sets how often each verified setting is simulated"
+        )
     measure = _measure(args.measure)
     try:
         names = list(measure_weights(measure))
