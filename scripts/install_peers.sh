@@ -23,5 +23,13 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
         torch "nvidia-physicsnemo==2.2.2" pytest pytest-xdist -e "$root[train]"
     echo "[install-peers] building torch-scatter 2.1.2 against torch $(python -c 'import torch; print(torch.__version__)')"
     python -m pip install --quiet --disable-pip-version-check --no-build-isolation "torch-scatter==2.1.2"
+    # PhysicsNeMo asks for timm, which pulls PyPI's torchvision: a CUDA build that fails to import
+    # beside CPU-only torch ('operator torchvision::nms does not exist'), and torchmetrics (under
+    # Lightning) imports it wherever it is installed. The MeshGraphNets need neither: remove a
+    # torchvision that does not import (benchmarks/peers.py stands in for timm then).
+    if ! python -c "import torchvision" >/dev/null 2>&1 && python -m pip show torchvision >/dev/null 2>&1; then
+        echo "[install-peers] removing torchvision $(python -m pip show torchvision | sed -n 's/^Version: //p'): it does not import beside torch $(python -c 'import torch; print(torch.__version__)')"
+        python -m pip uninstall --quiet --yes torchvision
+    fi
     echo "$want" > "$stamp"
 fi
