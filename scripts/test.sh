@@ -6,8 +6,9 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 # shellcheck disable=SC1091
 source scripts/install.sh
-echo "[test] ruff check"
+echo "[test] ruff check, ruff format --check (Python, notebooks and the Markdown code blocks)"
 ruff check .
+ruff format --check .
 echo "[test] pytest"
 export MPLBACKEND=Agg
 # One pytest worker per core (pytest-xdist), each with one thread: torch's OpenMP threads
