@@ -65,7 +65,7 @@ from typing import Any
 import torch
 import yaml
 
-from torch_ampn._device import device_name
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # benchmarks.peers, the peers' adapters, for checkpoints of their cells

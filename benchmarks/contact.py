@@ -34,7 +34,6 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
 from torch_ampn.data import laminate_mesh
 from torch_ampn.transforms import (
     component_radius_graph,
@@ -43,6 +42,8 @@ from torch_ampn.transforms import (
     plain_radius_graph,
     torch_cluster_available,
 )
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 
 def parse_args() -> argparse.Namespace:

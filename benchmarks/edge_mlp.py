@@ -27,8 +27,9 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
 from torch_ampn.nn import LayerNormMLP
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 
 def _time(fn, repeats: int, device: torch.device) -> float:

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
 from torch_ampn.data import build_hierarchy, laminate_mesh
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 
 def measure(scale: int, max_levels: int, repeats: int, operator: str) -> dict:

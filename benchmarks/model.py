@@ -26,9 +26,10 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
 from torch_ampn.data import NodeType, build_hierarchy, laminate_mesh, level_name
 from torch_ampn.nn import AMPN, Normalizer, hierarchical_features, num_fine_node_features
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 NUM_GRIPPERS = 2  # per quarter model
 

@@ -44,12 +44,13 @@ from pathlib import Path
 import torch
 import yaml
 
-from torch_ampn._device import device_name
 from torch_ampn.data import HierarchyCache, step_sample
 from torch_ampn.fast_rollout import FastRollout
 from torch_ampn.nn import AMPNSurrogate
 from torch_ampn.rollout import rollout
 from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 ROOT = Path(__file__).resolve().parent.parent
 NETWORK_KEYS = ("hidden_channels", "mlp_channels", "num_levels", "pre_layers", "down_layers", "solve_layers",

@@ -26,8 +26,9 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
 from torch_ampn.sim import StampFormingConfig, simulate_batch
+
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 
 def timed(cfg: StampFormingConfig, batch: int, compile_: bool, device: str) -> tuple[float, int, int]:

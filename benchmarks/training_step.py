@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from torch_ampn._device import device_name
+from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 QUICKSTART = dict(
     hidden_channels=32, mlp_channels=32, num_levels=3, pre_layers=1, down_layers=1, solve_layers=1,

@@ -4,8 +4,14 @@ Imports are inside the fixtures, so that collecting a test file that uses none s
 """
 
 import os
+import sys
+from pathlib import Path
 
 import pytest
+
+# The benchmark scripts import their helpers (``device_info``) from their own folder, which is on
+# ``sys.path`` when a script runs; the tests that load a script by its path need it there too.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 # Compiled rollout steps get Inductor's Python wrapper in the tests (and in the fits and notebooks
 # they start, which inherit the environment): the C++ wrapper, FastRollout's default for small

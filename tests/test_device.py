@@ -1,6 +1,6 @@
 import platform
 
-from torch_ampn._device import device_name
+from device_info import device_name
 
 CPUINFO = """processor\t: 0
 vendor_id\t: GenuineIntel
