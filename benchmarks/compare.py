@@ -725,7 +725,9 @@ def figures(
 def report(args: argparse.Namespace, base: dict) -> dict[str, Any]:
     variants = [v for v in args.variants if applicable(v, base)]
     found = {variant for variant, _ in load_cells(args.results)}
-    variants += [v for v in PEER_VARIANTS if v in found and v not in variants]  # the peers' rows, once run
+    # every variant with cells in the folder gets its row, so that a run of a few variants (the
+    # peers' job, say) does not write a table without the others
+    variants += [v for v in VARIANTS if v in found and v not in variants and applicable(v, base)]
     cells = {k: c for k, c in load_cells(args.results).items() if k[0] in variants and k[1] in args.seeds}
     rows = table(cells, variants, args.seeds, base)
     timed = args.results / "timings.json"

@@ -114,6 +114,17 @@ def test_the_report_has_a_row_per_variant_and_the_figures(two_cells):
 
 @pytest.mark.slow
 @two_cells_group
+def test_a_report_of_some_variants_keeps_the_rows_of_the_others(two_cells):
+    root, args, compare, cells = two_cells
+    results = root / "results"
+    assert compare.main([*args, "--variants", "robin5", "--report", "--no-figures"]) == 0
+    rows = {r["variant"]: r for r in json.loads((results / "table.json").read_text())["rows"]}
+    assert list(rows)[:2] == ["robin5", "ampn"]  # the named variants first, then the others found
+    assert rows["ampn"]["rmse"] == pytest.approx(cells["ampn"]["rmse"])
+
+
+@pytest.mark.slow
+@two_cells_group
 def test_a_rerun_skips_done_cells_and_a_failed_cell_writes_nothing(two_cells, capsys):
     root, args, compare, cells = two_cells
     results = root / "results"
