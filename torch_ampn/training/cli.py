@@ -19,6 +19,7 @@ a message, never ignored.
 from __future__ import annotations
 
 import copy
+import inspect
 import os
 import sys
 import warnings
@@ -43,6 +44,14 @@ RUNTIME_OPTIONS = (
     "fast_rollout",
     "check_mesh",
 )
+
+
+#: The module's defaults (those of the parser too): a given value equal to one was not given.
+MODULE_DEFAULTS: dict[str, Any] = {
+    name: p.default
+    for name, p in inspect.signature(AMPNLightningModule.__init__).parameters.items()
+    if p.default is not inspect.Parameter.empty
+}
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -107,19 +116,28 @@ class AMPNCLI(LightningCLI):
         if os.environ.get("AMPN_REQUIRE_PLANNED_STEPS") == "1":
             sys.exit(3)
 
-    def _parse_ckpt_path(self) -> None:
-        """Take the model's settings from ``--ckpt_path``, keeping given runtime options; refuse conflicts."""
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        """Parse; with ``--ckpt_path``, check the file and keep the model settings given before it.
+
+        Lightning then replaces the model's settings with the checkpoint's; :meth:`before_instantiate_classes`
+        puts the given runtime options back and refuses given settings of the trained network.
+        """
+        super().parse_arguments(parser, args)
+        self._given_model = None
         subcommand = self.config.get("subcommand")
-        if not subcommand or not self.config[subcommand].get("ckpt_path"):
-            return super()._parse_ckpt_path()
-        _check_checkpoint(subcommand, self.config[subcommand].ckpt_path)
-        given = copy.deepcopy(self.config[subcommand].model)
-        defaults = self.parser._subcommands_action._name_parser_map[subcommand].get_defaults().model
-        super()._parse_ckpt_path()
+        if subcommand and self.config[subcommand].get("ckpt_path"):
+            _check_checkpoint(subcommand, self.config[subcommand].ckpt_path)
+            self._given_model = copy.deepcopy(self.config[subcommand].model)
+
+    def before_instantiate_classes(self) -> None:
+        """Given runtime options win over the checkpoint's; other given settings that differ are refused."""
+        if getattr(self, "_given_model", None) is None:
+            return
+        subcommand = self.config.subcommand
         model = self.config[subcommand].model
         conflicts = []
-        for key, value in vars(given).items():
-            if _same(value, defaults.get(key)) or _same(value, model.get(key)):
+        for key, value in vars(self._given_model).items():
+            if _same(value, MODULE_DEFAULTS.get(key)) or _same(value, model.get(key)):
                 continue
             if key in RUNTIME_OPTIONS:
                 model[key] = value
