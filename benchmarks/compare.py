@@ -191,7 +191,7 @@ def applicable(variant: str, base: dict) -> bool:
 
 # ---- one cell -------------------------------------------------------------------------------------
 def _cli(stage: str, config_path: Path, log: Path, *extra: str) -> None:
-    cmd = [sys.executable, "-m", "torch_ampn.training.cli", stage, "--config", str(config_path), *extra]
+    cmd = [sys.executable, "-m", "torch_ampn.cli.train", stage, "--config", str(config_path), *extra]
     with log.open("a") as f:
         f.write(f"$ {' '.join(cmd)}\n")
         f.flush()
@@ -471,7 +471,7 @@ def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
         prior = VARIANTS[variant].changes.get("data.prior")
         dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels, prior=prior)
         item = dm._rollout_split("test")[0]
-        from torch_ampn.fast_rollout import fast_path_supported
+        from torch_ampn.rollout.fast import fast_path_supported
 
         no_fast = fast_path_supported(module.surrogate)  # e.g. plain-radius contact: the plain path
         entry: dict[str, Any] = {"checkpoint": ckpts[0].name, "fast_path": no_fast is None}

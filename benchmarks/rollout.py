@@ -4,7 +4,7 @@ For one resolution it times, side by side in one process:
 
 * ``plain``: :func:`torch_ampn.rollout.rollout` with ``surrogate.predict_residual`` (eager),
   with its per-step split into contact search and predictor;
-* ``fast``: :class:`torch_ampn.fast_rollout.FastRollout` (compiled unless ``--no-compile``),
+* ``fast``: :class:`torch_ampn.rollout.fast.FastRollout` (compiled unless ``--no-compile``),
   with its split into contact searches and the compiled step (contact selection, features,
   network), for batch sizes ``--batch-sizes`` (settings per second);
 * ``simulator``: the embedded simulator (``torch_ampn.sim.simulate_batch``, compiled) making
@@ -45,9 +45,9 @@ import torch
 import yaml
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.fast_rollout import FastRollout
 from torch_ampn.nn import AMPNSurrogate
 from torch_ampn.rollout import rollout
+from torch_ampn.rollout.fast import FastRollout
 from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch
 
 from device_info import device_name  # benchmarks/device_info.py, beside this script
@@ -160,9 +160,7 @@ def time_fast(s, trajs, hierarchy, device, repeats, compile: bool, candidates: s
         c.build = Timed(c.build, device, timers["search"])
     if s.diffusion_steps == 1:  # one compiled graph: selection, features, network
         timers["step"] = []
-        fast._fused = Timed(fast._fused, device, timers["step"])
-        if not fast.compiled:
-            fast._step_fused = Timed(fast._step_fused, device, timers["step"])
+        fast._fused = Timed(fast._fused, device, timers["step"])  # compiled or eager
     else:
         timers["inputs"], timers["network"] = [], []
         fast._inputs = Timed(fast._inputs, device, timers["inputs"])

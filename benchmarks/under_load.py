@@ -33,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Environments a workload starts with. ``AMPN_THREADS=off`` turns the package's own choice
-#: off (:func:`torch_ampn.threads.configure_threads`), so ``default`` is torch as it comes and
+#: off (:func:`torch_ampn.utils.threads.configure_threads`), so ``default`` is torch as it comes and
 #: ``package`` what ``import torch_ampn`` chooses (``OMP_WAIT_POLICY=PASSIVE``).
 MECHANISMS: dict[str, dict[str, str]] = {
     "default": {"AMPN_THREADS": "off"},
@@ -207,8 +207,10 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(worker(args.worker, args.data_dir)))
         return
     # warm the compile cache outside the timed grid, however long it takes: once per kernel
-    # variant (mechanisms that set Inductor's chunk size compile kernels of their own)
-    variants = {MECHANISMS[m].get("TORCHINDUCTOR_CPP_MIN_CHUNK_SIZE"): m for m in reversed(args.mechanisms)}
+    # variant (mechanisms that set Inductor's chunk size or the thread count compile kernels of
+    # their own: the thread count is written into the generated code)
+    kernel_settings = ("TORCHINDUCTOR_CPP_MIN_CHUNK_SIZE", "OMP_NUM_THREADS")
+    variants = {tuple(MECHANISMS[m].get(k) for k in kernel_settings): m for m in reversed(args.mechanisms)}
     for workload in args.workloads:
         for mechanism in variants.values():
             print(f"{workload:<9} warming the compile cache ({mechanism})", flush=True)

@@ -131,7 +131,7 @@ def fit_config(folder: Path, data_dir: Path) -> tuple[Path, Path]:
 
 def make_checkpoint(folder: Path, data_dir: Path) -> Path:
     """Run the tiny fit in ``folder`` on ``data_dir``; returns its ``last.ckpt``."""
-    from torch_ampn.training.cli import main
+    from torch_ampn.cli.train import main
 
     config, out = fit_config(folder, data_dir)
     main(["fit", "--config", str(config)])

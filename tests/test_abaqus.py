@@ -10,7 +10,7 @@ import pytest
 import torch
 import yaml
 
-from torch_ampn import data_cli
+from torch_ampn.cli import data as data_cli
 from torch_ampn.data import Trajectory, TrajectoryFormatError
 from torch_ampn.data.abaqus_io import merged_node_blocks, node_labels, read_abaqus
 

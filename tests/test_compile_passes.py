@@ -3,7 +3,7 @@
 import torch
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from torch_ampn.compile_passes import UnfuseBiasAdd
+from torch_ampn.utils.compile_passes import UnfuseBiasAdd
 
 aten = torch.ops.aten
 

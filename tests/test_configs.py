@@ -16,8 +16,8 @@ pytest.importorskip("lightning")
 from helpers import checkpoint_steps  # noqa: E402
 from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: E402
 
+from torch_ampn.cli.train import main  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
-from torch_ampn.training.cli import main  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "examples" / "configs"
 NAMES = ["quickstart.yaml", "paper.yaml", "family.yaml", "settings.yaml", "settings_prior.yaml"]

@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from torch_ampn import data_cli
+from torch_ampn.cli import data as data_cli
 from torch_ampn.data import Trajectory, TrajectoryFormatError
 from torch_ampn.data.d3plot_io import read_d3plot, write_d3plot
 from torch_ampn.data.part_map import fibres_from_angle

@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torch_ampn import data_cli
+from torch_ampn.cli import data as data_cli
 from torch_ampn.data import Trajectory
 from torch_ampn.data.dataset import split_files
 from torch_ampn.sim import StampFormingConfig, generate_dataset

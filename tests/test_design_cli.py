@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torch_ampn.cli.design import main
 from torch_ampn.design import MEASURES
-from torch_ampn.design.cli import main
 
 TINY_CKPT = Path(__file__).parent / "data" / "tiny.ckpt"
 BUDGET = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "2"]
@@ -55,7 +55,7 @@ def test_a_checkpoint_design_study(tiny_data, tmp_path):
 
 
 def test_bad_input_ends_in_one_line(tiny_data, tmp_path, monkeypatch, capsys):
-    from torch_ampn.training.cli import entry_point
+    from torch_ampn.cli.train import entry_point
 
     for args, message in [
         (["--baseline", "pod_gp", "--measure", "smoothness"], "--measure: measure must be among"),

@@ -31,7 +31,7 @@ def _free_port() -> int:
 def _cli(*args, cwd):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port())}
     done = subprocess.run(
-        [sys.executable, "-m", "torch_ampn.training.cli", *args],
+        [sys.executable, "-m", "torch_ampn.cli.train", *args],
         cwd=cwd,
         env=env,
         capture_output=True,

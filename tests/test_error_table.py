@@ -15,13 +15,13 @@ pytest.importorskip("lightning")
 
 from lasso.dyna import D3plot  # noqa: E402
 
+from torch_ampn.cli.train import _check_checkpoint  # noqa: E402
 from torch_ampn.data import Trajectory  # noqa: E402
 from torch_ampn.data.abaqus_io import read_abaqus  # noqa: E402
 from torch_ampn.data.d3plot_io import read_d3plot, write_d3plot  # noqa: E402
 from torch_ampn.data.template import template_settings  # noqa: E402
 from torch_ampn.testing import small_trajectory  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
-from torch_ampn.training.cli import _check_checkpoint  # noqa: E402
 from torch_ampn.training.module import _check_writable  # noqa: E402
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "errors.md"

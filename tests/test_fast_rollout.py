@@ -8,10 +8,10 @@ import torch
 from helpers import eager_fast_rollout
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.fast_rollout import FastRollout, cached_fast_rollout
 from torch_ampn.nn import AMPNSurrogate, InterLevelConv, IntraLevelConv
 from torch_ampn.nn._conv import incoming_slots
 from torch_ampn.rollout import rollout
+from torch_ampn.rollout.fast import FastRollout, cached_fast_rollout
 from torch_ampn.testing import contact_edges_brute_force, random_edge_index, small_trajectory
 from torch_ampn.transforms import component_radius_table, table_to_edge_index
 from torch_ampn.transforms.candidates import ContactCandidates
@@ -341,7 +341,7 @@ def test_fast_rollout_refuses_another_mesh(long_run, hierarchy):
 def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     long_run, hierarchy, tmp_path, monkeypatch
 ):
-    from torch_ampn.fast_rollout import rollout_settings
+    from torch_ampn.rollout.fast import rollout_settings
     from torch_ampn.training import AMPNLightningModule
     from torch_ampn.training.items import RolloutItem
 
@@ -365,7 +365,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     module.eval()
     items = [RolloutItem(i, f"setting{i}", t, hierarchy) for i, t in enumerate(trajs)]
     # batching is what this checks, not compiling (the tests above): the fast path runs eagerly
-    import torch_ampn.fast_rollout as fast_rollout_module
+    import torch_ampn.rollout.fast as fast_rollout_module
 
     eager_fast_rollout(monkeypatch)
     with torch.no_grad():

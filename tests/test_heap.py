@@ -6,7 +6,7 @@ import sys
 import pytest
 import torch
 
-from torch_ampn._heap import heap_control_available, retained_heap
+from torch_ampn.utils.heap import heap_control_available, retained_heap
 
 glibc = pytest.mark.skipif(
     not sys.platform.startswith("linux") or not heap_control_available(), reason="needs glibc's mallopt"

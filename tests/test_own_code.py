@@ -3,7 +3,7 @@ import types
 import pytest
 import torch
 
-from torch_ampn._own_code import own_code
+from torch_ampn.utils.own_code import own_code
 
 
 def _scaled(x, factor=2.0, *, shift=0.0):
@@ -40,7 +40,7 @@ def test_own_code_copies_functions_closures_and_methods():
 
 
 def test_keyed_copies_are_shared_per_key(monkeypatch):
-    import torch_ampn._own_code as module
+    import torch_ampn.utils.own_code as module
 
     monkeypatch.setattr(module, "_KEYED", type(module._KEYED)())
     monkeypatch.setattr(module, "KEYED_COPIES", 2)

@@ -25,7 +25,7 @@ def test_verdict_names_each_baseline_the_model_does_not_beat():
 
 
 def test_shortfall_line_only_when_a_fit_ends_before_its_planned_steps():
-    from torch_ampn.training.cli import shortfall
+    from torch_ampn.cli.train import shortfall
 
     assert shortfall(3000, 3000) is None
     assert shortfall(10, -1) is None  # no step limit planned
@@ -67,7 +67,7 @@ def test_cli_after_fit_warns_and_with_the_main_jobs_setting_exits_3(monkeypatch,
 
     import pytest
 
-    from torch_ampn.training.cli import AMPNCLI
+    from torch_ampn.cli.train import AMPNCLI
 
     cli = AMPNCLI.__new__(AMPNCLI)  # only the hook: no parser, no Trainer
     cli.trainer = SimpleNamespace(global_step=3000, max_steps=3000)

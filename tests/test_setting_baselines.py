@@ -197,7 +197,7 @@ def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
 
 def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
     """The same settings from a start moved by 1e-6 mm: a small but real difference; the command's JSON."""
-    from torch_ampn.data_cli import main
+    from torch_ampn.cli.data import main
     from torch_ampn.sim import simulate_batch
     from torch_ampn.sim.config import StampFormingConfig
     from torch_ampn.sim.spread import chaos_floor

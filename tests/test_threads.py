@@ -1,10 +1,10 @@
-"""torch_ampn.threads: the OpenMP wait policy is set before torch starts, unless the user chose."""
+"""torch_ampn.utils.threads: the OpenMP wait policy is set before torch starts, unless the user chose."""
 
 import os
 import subprocess
 import sys
 
-from torch_ampn.threads import WAIT_POLICY, configure_threads
+from torch_ampn.utils.threads import WAIT_POLICY, configure_threads
 
 SHOW = "import os, sys; {imports}; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
 CONTROLLED = ("AMPN_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
@@ -20,7 +20,7 @@ def _run(imports, **env):
 
 def test_import_sets_the_wait_policy_before_torch():
     assert _run("import torch_ampn") == ["None", WAIT_POLICY]
-    assert _run("import torch_ampn.training.cli") == ["None", WAIT_POLICY]  # the torch-ampn command
+    assert _run("import torch_ampn.cli.train") == ["None", WAIT_POLICY]  # the torch-ampn command
     assert _run("import torch; import torch_ampn") == ["None", "None"]  # too late: left alone
 
 

@@ -20,6 +20,7 @@ import lightning as L  # noqa: E402
 from make_fixtures import SMALL_MODEL, TINY_CKPT, fit_config  # noqa: E402
 from torch_geometric.data import Batch  # noqa: E402
 
+from torch_ampn.cli.train import main  # noqa: E402
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
 from torch_ampn.rollout import rollout_rmse  # noqa: E402
 from torch_ampn.sim import StampFormingConfig, generate_dataset, simulate_batch  # noqa: E402
@@ -31,7 +32,6 @@ from torch_ampn.training import (  # noqa: E402
     WarmupExponentialDecay,
     warmup_exponential_decay,
 )
-from torch_ampn.training.cli import main  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -764,7 +764,7 @@ def test_bad_checkpoints_and_input_errors_end_in_one_line(data_dir, tmp_path):
     args = ["predict", "--ckpt_path", str(legacy), "--data.data_dir", str(data_dir)]
     args += ["--data.generate", "false", "--data.min_coarse_nodes", "4", "--data.predict_file", str(bad)]
     args += ["--trainer.logger", "false"]
-    script = "from torch_ampn.training.cli import entry_point; entry_point()"
+    script = "from torch_ampn.cli.train import entry_point; entry_point()"
     done = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, cwd=tmp_path)
     last = done.stderr.strip().splitlines()[-1]
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-2000:]
@@ -805,7 +805,7 @@ def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(tiny_fit, tmp_path):
     # the same thread count as this process's fits: the summation order of a reduction depends on it
     threads = torch.get_num_threads()
     script = f"import sys, torch; torch.set_num_threads({threads}); "
-    script += "from torch_ampn.training.cli import main; main(sys.argv[1:])"
+    script += "from torch_ampn.cli.train import main; main(sys.argv[1:])"
     done = subprocess.run(
         [sys.executable, "-c", script, "fit", "--config", str(killing_path)],
         capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": helpers.PYTHONPATH},

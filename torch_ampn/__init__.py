@@ -2,7 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from torch_ampn.threads import configure_threads
+from torch_ampn.utils.threads import configure_threads
 
 # Before anything imports torch: its OpenMP pool reads the wait settings when it starts.
 configure_threads()

@@ -91,8 +91,8 @@ def surrogate_predictor(
         device: Where to run.
         seed: Seed of each rollout's noise generator.
     """
-    from torch_ampn.fast_rollout import fast_path_supported, rollout_settings
     from torch_ampn.rollout import rollout
+    from torch_ampn.rollout.fast import fast_path_supported, rollout_settings
 
     needs_prior = bool(getattr(surrogate, "prior_features", False))
     if needs_prior and prior is None:

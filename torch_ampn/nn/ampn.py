@@ -215,7 +215,7 @@ class AMPN(nn.Module):
                 validity masks of fixed-size contact tables (see :class:`IntraLevelConv`).
             slots_dict: Optional :func:`~torch_ampn.nn._conv.incoming_slots` tables of any edge
                 sets (keys as ``edge_index_dict``): those aggregate by a dense reduction
-                (same result; what :class:`~torch_ampn.fast_rollout.FastRollout` passes).
+                (same result; what :class:`~torch_ampn.rollout.fast.FastRollout` passes).
 
         Returns:
             ``[N_0, out_channels]``.

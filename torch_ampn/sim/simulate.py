@@ -14,7 +14,6 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torch_ampn._own_code import own_code
 from torch_ampn.data.mesh import MultiComponentMesh, rectangle_mesh
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
@@ -28,6 +27,7 @@ from torch_ampn.sim.contact import (
 )
 from torch_ampn.sim.geometry import die_surface, punch_surface, punch_travel
 from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
+from torch_ampn.utils.own_code import own_code
 
 
 def build_mesh(cfg: StampFormingConfig) -> MultiComponentMesh:
@@ -301,7 +301,7 @@ class LaminateModel:
 
         # a code object per mesh and part: the step reads the tool geometry as constants, so each
         # part of a family compiles its own step, rather than recompiling a shared one until the
-        # 9th part of a process runs eagerly; calls for the same part reuse it (torch_ampn._own_code)
+        # 9th part of a process runs eagerly; calls for the same part reuse it (torch_ampn.utils.own_code)
         part = (tuple(self.x0.shape), str(self.x0.device), self.x0.dtype, repr(self.cfg))
         return torch.compile(own_code(step, key=part), dynamic=False) if compile else step
 

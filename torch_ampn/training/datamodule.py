@@ -95,7 +95,7 @@ class AMPNDataModule(L.LightningDataModule):
             fibres and tool motion the predicted settings take (``None``: the embedded simulator's
             part of ``dataset.json``).
         predict_batch_size: Settings rolled out together by ``predict`` (one batch on the fast
-            path, :class:`~torch_ampn.fast_rollout.FastRollout`; outputs per setting as with 1).
+            path, :class:`~torch_ampn.rollout.fast.FastRollout`; outputs per setting as with 1).
         family: Generate a family of parts (:class:`~torch_ampn.sim.PartFamily` settings, or
             ``"default"``): every trajectory its own tool geometry and ply stack; pair it with
             ``model.component_encoding: stack``.

@@ -156,7 +156,7 @@ class AMPNLightningModule(L.LightningModule):
             checkpoints are the same as without it. If compiling fails (e.g. no C++ compiler),
             training warns and goes on eager.
         fast_rollout: Roll out (validate, test, predict) on the static-shape, compiled path
-            (:class:`~torch_ampn.fast_rollout.FastRollout`: the same result up to summation
+            (:class:`~torch_ampn.rollout.fast.FastRollout`: the same result up to summation
             order, compiled once per mesh); ``False``: the plain path of
             :func:`~torch_ampn.rollout.rollout`. Contact settings without a fast path
             (``contact_mode="radius"``) take the plain path with a warning.
@@ -532,7 +532,7 @@ class AMPNLightningModule(L.LightningModule):
 
     def rollout_items(self, items: list[RolloutItem]) -> list[tuple[Tensor, float]]:
         """:meth:`rollout_item` of several items, as one batch where the fast path allows it."""
-        from torch_ampn.fast_rollout import cached_fast_rollout, fast_path_supported
+        from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
 
         same_mesh = all(it.hierarchy is items[0].hierarchy for it in items)
         batchable = self.hparams.get("fast_rollout", True) and fast_path_supported(self.surrogate) is None

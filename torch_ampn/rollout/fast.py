@@ -27,16 +27,12 @@ from __future__ import annotations
 
 import functools
 import os
-import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from torch_ampn._heap import retained_heap
-from torch_ampn._own_code import own_code
-from torch_ampn.compile_passes import UnfuseBiasAdd
 from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
@@ -51,6 +47,10 @@ from torch_ampn.transforms.candidates import (
     select_table,
 )
 from torch_ampn.transforms.radius import component_radius_table
+from torch_ampn.utils.compile_fallback import EagerFallback
+from torch_ampn.utils.compile_passes import UnfuseBiasAdd
+from torch_ampn.utils.heap import retained_heap
+from torch_ampn.utils.own_code import own_code
 
 #: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
 _CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
@@ -164,7 +164,7 @@ class FastRollout:
         skin: Verlet skin (default: the level's radius).
         capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
         retain_heap: On the CPU, keep freed memory in the process heap while a rollout runs
-            (:func:`torch_ampn._heap.retained_heap`, glibc only), so that the step's buffers
+            (:func:`torch_ampn.utils.heap.retained_heap`, glibc only), so that the step's buffers
             are not faulted in afresh at every step.
         cpp_wrapper: On the CPU, let Inductor write the compiled step's wrapper in C++, so
             that its kernel calls are not made from Python. ``None`` (default): where the
@@ -287,8 +287,11 @@ class FastRollout:
         ]
         self._static_contact: list[tuple[Tensor, Tensor, Tensor]] | None = None
         self._capacity = [0] * self.num_levels  # compacted contact edges per level (see _compact)
-        self.compiled = self.cpp_wrapper = False
-        self._inputs, self._network, self._fused = self._step_inputs, None, None
+        self.cpp_wrapper = False
+        # the step's callables: compiled where compile=True, each falling back to its eager code
+        self._fallback = EagerFallback("the fast rollout runs eagerly")
+        self._compile = compile
+        self._fused, self._inputs, self._network = self._step_fused, self._step_inputs, s.model
         if compile:
             # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
             # on the CPU the bias additions go into the fused kernels (see compile_passes) and the
@@ -304,14 +307,23 @@ class FastRollout:
                 if cuda
                 else {"post_grad_custom_post_pass": UnfuseBiasAdd(), "cpp_wrapper": self.cpp_wrapper}
             )
+            wrap = self._fallback.wrap
             if s.diffusion_steps == 1:  # the whole step in one graph
                 fused = {"mode": "reduce-overhead"} if cuda else {"options": options}
-                self._fused = torch.compile(own_code(self._step_fused), dynamic=False, **fused)
+                self._fused = wrap(
+                    torch.compile(own_code(self._step_fused), dynamic=False, **fused), self._fused
+                )
             else:  # K network calls per step: the inputs once, the network K times (no CUDA graphs:
                 # a replay would overwrite the outputs of the other graph that are still in use)
-                self._inputs = torch.compile(own_code(self._step_inputs), dynamic=False, options=options)
-                self._network = torch.compile(own_code(s.model.forward), dynamic=False, options=options)
-            self.compiled = True
+                compiled = torch.compile(own_code(self._step_inputs), dynamic=False, options=options)
+                self._inputs = wrap(compiled, self._inputs)
+                compiled = torch.compile(own_code(s.model.forward), dynamic=False, options=options)
+                self._network = wrap(compiled, self._network)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the step runs compiled (``compile=True`` and no compiler failure so far)."""
+        return self._compile and not self._fallback.failed
 
     # ---- one step ---------------------------------------------------------------------------
     def _step_inputs(
@@ -464,32 +476,6 @@ class FastRollout:
         slots = torch.where(mask, position.view(mask.shape), -1)
         return torch.stack([source, target]), valid, slots
 
-    def _call_inputs(self, *args):
-        if self.compiled and self._fused is None:
-            try:
-                return self._inputs(*args)
-            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
-                self._fall_back(err)
-        return self._step_inputs(*args)
-
-    def _call_fused(self, *args):
-        if self.compiled:
-            try:
-                return self._fused(*args)
-            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
-                self._fall_back(err)
-        return self._step_fused(*args)
-
-    def _fall_back(self, err: Exception) -> None:
-        warnings.warn(
-            f"torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
-            "the fast rollout runs eagerly",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        self.compiled = False
-        self._inputs, self._network, self._fused = self._step_inputs, None, None
-
     # ---- the rollout ------------------------------------------------------------------------
     @torch.no_grad()
     def __call__(
@@ -583,9 +569,9 @@ class FastRollout:
                 inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0_l, *priors)
                 noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
                 if self.surrogate.diffusion_steps == 1:
-                    (pred[t],) = self._checked(self._call_fused, *inputs, noise)
+                    (pred[t],) = self._checked(self._fused, *inputs, noise)
                 else:
-                    *features, prev_disp = self._checked(self._call_inputs, *inputs)
+                    *features, prev_disp = self._checked(self._inputs, *inputs)
                     du = self._residual(*features[:3], prev_disp, *features[3:], noise)
                     pred[t] = torch.where(ply[:, None], pos + du, pred[t])
         return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
@@ -593,15 +579,8 @@ class FastRollout:
     def _residual(
         self, x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise: list[Tensor]
     ) -> Tensor:
-        args = (x_dict, index_dict, e_dict, prev_disp, mask_dict)
-        if self._network is not None:
-            try:
-                network = functools.partial(self._network, slots_dict=slots)
-                draw = iter(noise).__next__
-                return self.surrogate.residual_from_features(*args, network=network, draw=draw).float()
-            except Exception as err:  # noqa: BLE001 - any compiler failure: run eagerly
-                self._fall_back(err)
-        network = functools.partial(self.surrogate.model, slots_dict=slots)
+        """The K-step sampled residual ``[B N, 3]`` from a step's features, with the network ``K`` times."""
+        network = functools.partial(self._network, slots_dict=slots)
         return self.surrogate.residual_from_features(
-            *args, network=network, draw=iter(noise).__next__
+            x_dict, index_dict, e_dict, prev_disp, mask_dict, network=network, draw=iter(noise).__next__
         ).float()

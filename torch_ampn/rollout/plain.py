@@ -56,7 +56,7 @@ def rollout(
         num_steps: Steps to roll out (default: all ``T``).
         device: Where to run (default: the hierarchy's device).
         progress: Show a progress bar.
-        fast: Use the static-shape path (:class:`~torch_ampn.fast_rollout.FastRollout`):
+        fast: Use the static-shape path (:class:`~torch_ampn.rollout.fast.FastRollout`):
             ``predictor`` must then be an :class:`~torch_ampn.nn.AMPNSurrogate` (its own contact
             settings are used; ``contact`` is ignored) and the noise comes from ``generator``.
             Same result up to floating-point summation order. Where the surrogate's settings
@@ -71,8 +71,8 @@ def rollout(
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if fast:
-        from torch_ampn.fast_rollout import cached_fast_rollout, fast_path_supported
         from torch_ampn.nn.surrogate import AMPNSurrogate
+        from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
 
         if not isinstance(predictor, AMPNSurrogate):
             raise TypeError(

@@ -168,7 +168,7 @@ def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
 def entry_point() -> None:
     """Console script ``torch-ampn``: input errors end in one line on stderr (exit status 1), no traceback.
 
-    ``torch-ampn design ...`` runs :mod:`torch_ampn.design.cli`; everything else is the Lightning CLI.
+    ``torch-ampn design ...`` runs :mod:`torch_ampn.cli.design`; everything else is the Lightning CLI.
 
     ``AMPN_TRACEBACK=1`` shows the traceback instead.
     """
@@ -176,7 +176,7 @@ def entry_point() -> None:
 
     try:
         if sys.argv[1:2] == ["design"]:  # the design study is not a Lightning subcommand
-            from torch_ampn.design.cli import main as design
+            from torch_ampn.cli.design import main as design
 
             design(sys.argv[2:])
         else:

@@ -1,0 +1,28 @@
+"""Autoregressive rollouts of a next-step predictor over a whole trajectory.
+
+:mod:`~torch_ampn.rollout.plain` rolls out any predictor window by window
+(:func:`rollout`) and holds the error metric (:func:`rollout_rmse`);
+:mod:`~torch_ampn.rollout.fast` rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out with static
+shapes, compiled and batched over process settings (:class:`FastRollout`, :func:`rollout_settings`).
+"""
+
+from torch_ampn.rollout.fast import (
+    FastPathUnavailable,
+    FastRollout,
+    cached_fast_rollout,
+    fast_path_supported,
+    rollout_settings,
+)
+from torch_ampn.rollout.plain import Predictor, Transform, rollout, rollout_rmse
+
+__all__ = [
+    "FastPathUnavailable",
+    "FastRollout",
+    "Predictor",
+    "Transform",
+    "cached_fast_rollout",
+    "fast_path_supported",
+    "rollout",
+    "rollout_rmse",
+    "rollout_settings",
+]
