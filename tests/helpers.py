@@ -77,9 +77,10 @@ def eager_fast_rollout(monkeypatch) -> None:
     import functools
 
     import torch_ampn.rollout.fast as fast_rollout_module
+    import torch_ampn.rollout.surrogate as choice  # the one caller of cached_fast_rollout
 
     eager = functools.partial(fast_rollout_module.cached_fast_rollout, compile=False)
-    monkeypatch.setattr(fast_rollout_module, "cached_fast_rollout", lambda *a, compile=0, **k: eager(*a, **k))
+    monkeypatch.setattr(choice, "cached_fast_rollout", lambda *a, compile=0, **k: eager(*a, **k))
 
 
 def checkpoint_steps(callbacks: list, folder) -> tuple[int, int]:

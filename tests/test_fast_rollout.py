@@ -316,6 +316,26 @@ def test_settings_without_a_fast_path_take_the_plain_path(long_run, hierarchy):
     torch.testing.assert_close(out, _plain(s, traj, hierarchy)[:6])
 
 
+def test_rollout_surrogate_is_the_one_choice_of_path(long_run, hierarchy):
+    """Fast where the settings allow it (batched, the plain rollout's result), else plain with a warning."""
+    from torch_ampn.rollout import rollout_surrogate
+
+    s = _surrogate(long_run[0], hierarchy)
+    trajs = list(long_run)
+    gens = [torch.Generator().manual_seed(3) for _ in trajs]
+    fast = rollout_surrogate(s, trajs, hierarchy, gens, batch_size=2, compile=False, num_steps=10)
+    for one, out in zip(trajs, fast, strict=True):
+        torch.testing.assert_close(out, _plain(s, one, hierarchy)[:11], atol=1e-4, rtol=0)
+    plain = rollout_surrogate(s, trajs[:1], hierarchy, [torch.Generator().manual_seed(3)], fast=False)
+    torch.testing.assert_close(plain[0], _plain(s, trajs[0], hierarchy), atol=0, rtol=0)
+    radius = _surrogate(long_run[0], hierarchy, contact_mode="radius")
+    with pytest.warns(RuntimeWarning, match="contact mode 'radius'.*taking the plain path"):
+        out = rollout_surrogate(radius, trajs[:1], hierarchy, [torch.Generator().manual_seed(3)], num_steps=5)
+    torch.testing.assert_close(out[0], _plain(radius, trajs[0], hierarchy)[:6], atol=0, rtol=0)
+    with pytest.raises(ValueError, match="got 1 generators for 2 trajectories"):
+        rollout_surrogate(s, trajs, hierarchy, gens[:1])
+
+
 def test_static_contact_fast_path(long_run, hierarchy):
     traj = long_run[0]
     s = _surrogate(traj, hierarchy, contact_positions="initial")

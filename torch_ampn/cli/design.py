@@ -87,18 +87,21 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
 def run(args: argparse.Namespace) -> dict:
     """The design study the arguments describe; returns what ``design.json`` holds."""
     from torch_ampn.data.meshio_io import export_xdmf
-    from torch_ampn.design.measures import MEASURES, part_quality
-    from torch_ampn.design.plots import plot_measure_maps, plot_parameter_map, plot_verification
-    from torch_ampn.design.refine import refine_settings
-    from torch_ampn.design.search import (
+    from torch_ampn.design import (
+        MEASURES,
         SettingsSpace,
         measure_weights,
         parameter_map,
+        part_quality,
+        plot_measure_maps,
+        plot_parameter_map,
+        plot_verification,
+        refine_settings,
         search_settings,
         settings_objective,
         settings_trajectories,
+        verify_choice,
     )
-    from torch_ampn.design.verify import verify_choice
     from torch_ampn.training import AMPNDataModule
 
     if args.runs < 1:

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -28,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_ampn.data.io import atomic_folder
 from torch_ampn.data.part_map import _TYPES, assemble_parts, check_part_map, load_part_map
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 
@@ -181,19 +180,12 @@ def write_d3plot(traj: Trajectory, folder: str | os.PathLike, predicted_pos: Ten
     plot.arrays[A.part_titles_ids] = part_ids
     plot.arrays[A.part_titles] = np.array([name.encode()[:72] for name in traj.names])
     spec, fibre_rows = _part_map_of(traj)
-    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=".tmp-d3plot-"))
-    try:
+    with atomic_folder(folder, prefix=".tmp-d3plot-") as tmp:
         plot.write_d3plot(str(tmp / "d3plot"))
         (tmp / PART_MAP_NAME).write_text(yaml.safe_dump(spec, sort_keys=False))
         if fibre_rows is not None:
             np.savetxt(tmp / "fibres.csv", fibre_rows, delimiter=",", fmt=["%d", "%.9g", "%.9g", "%.9g"],
                        header="node_id, fx, fy, fz")  # fmt: skip
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder / "d3plot"
 
 

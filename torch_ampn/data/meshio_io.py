@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -38,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_ampn.data.io import atomic_folder
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 
 _CELL_TYPES = {3: "triangle", 4: "quad"}
@@ -284,9 +284,7 @@ def read_time_series(path: str | os.PathLike) -> Trajectory:
 def export_vtu_series(traj: Trajectory, folder: str | os.PathLike) -> Path:
     """Write ``traj`` as one VTU file per step (initial points, ``displacement``) plus ``meta.json``."""
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=".tmp-vtu-"))
-    try:
+    with atomic_folder(folder, prefix=".tmp-vtu-") as tmp:
         u = traj.displacement().numpy()
         width = len(str(traj.num_steps))
         for k, t in enumerate(traj.time.tolist()):
@@ -303,10 +301,4 @@ def export_vtu_series(traj: Trajectory, folder: str | os.PathLike) -> Path:
             )
             mesh.write(tmp / f"step_{k:0{width}d}.vtu")
         write_meta_json(traj, tmp / "meta.json")
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder

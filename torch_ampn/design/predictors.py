@@ -91,13 +91,11 @@ def surrogate_predictor(
         device: Where to run.
         seed: Seed of each rollout's noise generator.
     """
-    from torch_ampn.rollout import rollout
-    from torch_ampn.rollout.fast import fast_path_supported, rollout_settings
+    from torch_ampn.rollout import rollout_surrogate
 
     needs_prior = bool(getattr(surrogate, "prior_features", False))
     if needs_prior and prior is None:
         raise ValueError("this surrogate reads a prior (prior_features): give the fitted prior baseline")
-    batched = fast_path_supported(surrogate) is None
 
     def predict(trajs: Sequence[Trajectory]) -> list[Tensor]:
         trajs = list(trajs)
@@ -106,16 +104,12 @@ def surrogate_predictor(
             trajs = [dataclasses.replace(t, prior=p) for t, p in zip(trajs, priors, strict=True)]
         dev = device or "cpu"
         gens = [torch.Generator(device=dev).manual_seed(seed) for _ in trajs]
-        if batched:
-            preds = rollout_settings(surrogate, trajs, hierarchy, batch_size, gens, compile, device)
-        else:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="no fast rollout")
-                preds = [
-                    rollout(surrogate, t, hierarchy, device=device, fast=True, generator=g, compile=compile)
-                    for t, g in zip(trajs, gens, strict=True)
-                ]
-        return list(preds)
+        with warnings.catch_warnings():  # a surrogate without a fast path: the plain one, quietly
+            warnings.filterwarnings("ignore", message="no fast rollout")
+            return rollout_surrogate(
+                surrogate, trajs, hierarchy, gens, batch_size=min(batch_size, len(trajs)), compile=compile,
+                device=device,
+            )  # fmt: skip
 
     return predict
 

@@ -3,7 +3,9 @@
 :mod:`~torch_ampn.rollout.plain` rolls out any predictor window by window
 (:func:`rollout`) and holds the error metric (:func:`rollout_rmse`);
 :mod:`~torch_ampn.rollout.fast` rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out with static
-shapes, compiled and batched over process settings (:class:`FastRollout`, :func:`rollout_settings`).
+shapes, compiled and batched over process settings (:class:`FastRollout`, :func:`rollout_settings`);
+:func:`rollout_surrogate` (:mod:`~torch_ampn.rollout.surrogate`) is the one place that chooses
+between them for a surrogate.
 """
 
 from torch_ampn.rollout.fast import (
@@ -14,6 +16,7 @@ from torch_ampn.rollout.fast import (
     rollout_settings,
 )
 from torch_ampn.rollout.plain import Predictor, Transform, rollout, rollout_rmse
+from torch_ampn.rollout.surrogate import rollout_surrogate
 
 __all__ = [
     "FastPathUnavailable",
@@ -25,4 +28,5 @@ __all__ = [
     "rollout",
     "rollout_rmse",
     "rollout_settings",
+    "rollout_surrogate",
 ]

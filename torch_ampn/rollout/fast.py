@@ -114,16 +114,15 @@ def rollout_settings(
     gens = list(generators)
     if len(gens) != len(trajs):
         raise ValueError(f"got {len(gens)} generators for {len(trajs)} settings")
-    runner = cached_fast_rollout(surrogate, hierarchy, min(batch_size, len(trajs)), compile, device)
-    starts = range(0, len(trajs), runner.batch_size)
-    if progress:
-        from tqdm.auto import tqdm
+    reason = fast_path_supported(surrogate)
+    if reason is not None:
+        raise FastPathUnavailable(f"no fast rollout: {reason}")
+    from torch_ampn.rollout.surrogate import rollout_surrogate
 
-        starts = tqdm(starts, desc="settings", unit="batch")
-    out: list[Tensor] = []
-    for i in starts:
-        out.extend(runner(trajs[i : i + runner.batch_size], gens[i : i + runner.batch_size]))
-    return out
+    size = min(batch_size, len(trajs))
+    return rollout_surrogate(
+        surrogate, trajs, hierarchy, gens, batch_size=size, compile=compile, device=device, progress=progress
+    )
 
 
 class FastPathUnavailable(ValueError):

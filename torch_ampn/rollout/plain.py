@@ -14,7 +14,6 @@ The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in 
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Callable
 
 import torch
@@ -72,23 +71,16 @@ def rollout(
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if fast:
         from torch_ampn.nn.surrogate import AMPNSurrogate
-        from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
+        from torch_ampn.rollout.surrogate import rollout_surrogate
 
         if not isinstance(predictor, AMPNSurrogate):
             raise TypeError(
                 f"rollout(fast=True) needs an AMPNSurrogate as predictor, got {type(predictor).__name__}"
             )
-        reason = fast_path_supported(predictor)
-        if reason is None:
-            runner = cached_fast_rollout(predictor, hierarchy, batch_size=1, compile=compile, device=device)
-            return runner([traj], [generator], num_steps=steps, progress=progress)[0]
-        warnings.warn(f"no fast rollout ({reason}); taking the plain path", RuntimeWarning, stacklevel=2)
-        surrogate = predictor
-        contact = surrogate.contact
-
-        def predictor(data: HierarchicalData) -> Tensor:
-            return surrogate.predict_residual(data, generator)
-
+        return rollout_surrogate(
+            predictor, [traj], hierarchy, [generator], compile=compile, device=device, num_steps=steps,
+            progress=progress,
+        )[0]  # fmt: skip
     if device is None:
         device = hierarchy.mesh(0).edge_index.device
     device = torch.device(device)

@@ -17,7 +17,7 @@ from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_p
 from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.nn.surrogate import AMPNSurrogate
-from torch_ampn.rollout import rollout, rollout_rmse
+from torch_ampn.rollout import rollout, rollout_rmse, rollout_surrogate
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
 from torch_ampn.training.schedule import WarmupExponentialDecay
@@ -429,20 +429,10 @@ class AMPNLightningModule(L.LightningModule):
         """Roll the surrogate out over ``item``'s trajectory: ``([T+1, N, 3] positions, seconds)``."""
         generator = self._generator(item.index)
         start = time.perf_counter()
-        if self.hparams.get("fast_rollout", True):
-            pred = rollout(
-                self.surrogate, item.trajectory, item.hierarchy, device=self.device, progress=progress,
-                fast=True, generator=generator,
-            )  # fmt: skip
-        else:
-            pred = rollout(
-                lambda data: self.surrogate.predict_residual(data, generator),
-                item.trajectory,
-                item.hierarchy,
-                self.surrogate.contact,
-                device=self.device,
-                progress=progress,
-            )
+        (pred,) = rollout_surrogate(
+            self.surrogate, [item.trajectory], item.hierarchy, [generator],
+            fast=self.hparams.get("fast_rollout", True), device=self.device, progress=progress,
+        )  # fmt: skip
         return pred, time.perf_counter() - start
 
     def _check_meshes(self, split: str) -> None:
@@ -532,20 +522,16 @@ class AMPNLightningModule(L.LightningModule):
 
     def rollout_items(self, items: list[RolloutItem]) -> list[tuple[Tensor, float]]:
         """:meth:`rollout_item` of several items, as one batch where the fast path allows it."""
-        from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
-
-        same_mesh = all(it.hierarchy is items[0].hierarchy for it in items)
-        batchable = self.hparams.get("fast_rollout", True) and fast_path_supported(self.surrogate) is None
-        if len(items) == 1 or not (same_mesh and batchable):
+        if len(items) == 1 or any(it.hierarchy is not items[0].hierarchy for it in items):
             return [self.rollout_item(it) for it in items]
-        self._rollout_batch_size = max(
-            getattr(self, "_rollout_batch_size", 1), len(items)
-        )  # one compiled size
-        runner = cached_fast_rollout(
-            self.surrogate, items[0].hierarchy, self._rollout_batch_size, device=self.device
-        )
+        # one compiled batch size: the largest seen (a smaller last batch is padded)
+        self._rollout_batch_size = max(getattr(self, "_rollout_batch_size", 1), len(items))
         start = time.perf_counter()
-        preds = runner([it.trajectory for it in items], [self._generator(it.index) for it in items])
+        preds = rollout_surrogate(
+            self.surrogate, [it.trajectory for it in items], items[0].hierarchy,
+            [self._generator(it.index) for it in items], fast=self.hparams.get("fast_rollout", True),
+            batch_size=self._rollout_batch_size, device=self.device,
+        )  # fmt: skip
         share = (time.perf_counter() - start) / len(items)
         return [(pred, share) for pred in preds]
 
