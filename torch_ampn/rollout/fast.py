@@ -111,9 +111,6 @@ def rollout_settings(
     trajs = list(trajectories)
     if generators is None:
         generators = [torch.Generator(device=device or "cpu").manual_seed(i) for i in range(len(trajs))]
-    gens = list(generators)
-    if len(gens) != len(trajs):
-        raise ValueError(f"got {len(gens)} generators for {len(trajs)} settings")
     reason = fast_path_supported(surrogate)
     if reason is not None:
         raise FastPathUnavailable(f"no fast rollout: {reason}")
@@ -121,7 +118,14 @@ def rollout_settings(
 
     size = min(batch_size, len(trajs))
     return rollout_surrogate(
-        surrogate, trajs, hierarchy, gens, batch_size=size, compile=compile, device=device, progress=progress
+        surrogate,
+        trajs,
+        hierarchy,
+        generators,
+        batch_size=size,
+        compile=compile,
+        device=device,
+        progress=progress,
     )
 
 
