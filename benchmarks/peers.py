@@ -219,7 +219,6 @@ class PhysicsNeMoHybrid(_PeerAdapter):
         step: Tensor | None = None,
         batch_dict: dict | None = None,
         contact_mask_dict: dict | None = None,
-        slots_dict: dict | None = None,
     ) -> Tensor:
         """The peer's output ``[N_0, out_channels]`` (arguments as :meth:`torch_ampn.nn.AMPN.forward`)."""
         from torch_geometric.data import Data
@@ -312,7 +311,6 @@ class PhysicsNeMoBSMS(_PeerAdapter):
         step: Tensor | None = None,
         batch_dict: dict | None = None,
         contact_mask_dict: dict | None = None,
-        slots_dict: dict | None = None,
     ) -> Tensor:
         """The peer's output ``[N_0, out_channels]``; ``x_dict`` also holds ``"pos"`` and ``"pos0"``."""
         from torch_geometric.data import Data

@@ -8,8 +8,7 @@ import torch
 from helpers import eager_fast_rollout
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.nn import AMPNSurrogate, InterLevelConv, IntraLevelConv
-from torch_ampn.nn._conv import incoming_slots
+from torch_ampn.nn import AMPNSurrogate, InterLevelConv, IntraLevelConv, SlottedEdgeIndex, incoming_slots
 from torch_ampn.rollout import rollout
 from torch_ampn.rollout.fast import FastRollout, cached_fast_rollout
 from torch_ampn.testing import contact_edges_brute_force, random_edge_index, small_trajectory
@@ -108,15 +107,19 @@ def test_slot_aggregation_equals_propagate(aggr):
     mask = torch.rand(n * 2) > 0.4
     e_mesh, e_contact = torch.randn(mesh.size(1), d), torch.randn(contact.size(1), d)
     ref = conv(x, mesh, e_mesh, contact, e_contact, mask)
-    slots = (incoming_slots(mesh, n), torch.where(mask.view(n, 2), torch.arange(2 * n).view(n, 2), -1))
-    out = conv(x, mesh, e_mesh, contact, e_contact, mask, *slots)
+    slotted_mesh = SlottedEdgeIndex.build(mesh, n)
+    table = torch.where(mask.view(n, 2), torch.arange(2 * n).view(n, 2), -1)  # row-major slots
+    slotted_contact = SlottedEdgeIndex(contact, table)
+    # a contact table's slots by construction equal the table built from the mask
+    assert torch.equal(slotted_contact.slots, incoming_slots(contact, n, mask))
+    out = conv(x, slotted_mesh, e_mesh, slotted_contact, e_contact, mask)
     for a, b in zip(out, ref, strict=True):
         torch.testing.assert_close(a, b)
     inter = InterLevelConv(d, 16, aggr=aggr)
     down = torch.stack([torch.arange(n), torch.tensor([0, 0, 1, 1, 1, 2, 2, 0, 1])])  # coarse node 3: none
     xs = (x, torch.randn(4, d))
     e = torch.randn(n, d)
-    for a, b in zip(inter(xs, down, e, incoming_slots(down, 4)), inter(xs, down, e), strict=True):
+    for a, b in zip(inter(xs, SlottedEdgeIndex.build(down, 4), e), inter(xs, down, e), strict=True):
         torch.testing.assert_close(a, b)
 
 

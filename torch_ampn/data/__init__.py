@@ -19,7 +19,7 @@ from torch_ampn.data.mesh import (
 )
 from torch_ampn.data.meshio_io import export_vtu_series, export_xdmf, read_time_series
 from torch_ampn.data.node_type import NodeType
-from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
+from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError, gripper_forces, gripper_points
 
 __all__ = [
     "HierarchicalData",
@@ -41,6 +41,8 @@ __all__ = [
     "rectangle_mesh",
     "stacked_plates",
     "check_dataset",
+    "gripper_forces",
+    "gripper_points",
     "set_window",
     "step_sample",
 ]

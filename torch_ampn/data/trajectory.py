@@ -44,6 +44,29 @@ FORMAT_NAME = "torch-ampn-trajectory"
 FORMAT_VERSION = 1
 
 
+def gripper_points(pos: Tensor, gripper_nodes: Tensor) -> Tensor:
+    """Gripping points: the mean position of each gripper's nodes (one per ply), ``[..., G, 3]``.
+
+    Args:
+        pos: Node positions ``[..., N, 3]`` (e.g. ``[T+1, N, 3]`` or one step ``[N, 3]``).
+        gripper_nodes: The gripped nodes ``LongTensor[..., G, P]`` (rows of ``pos``'s node axis;
+            a batch of ``B`` graphs stacked along the node axis passes ``[B, G, P]``).
+    """
+    return pos[..., gripper_nodes, :].mean(-2)
+
+
+def gripper_forces(points: Tensor, anchor: Tensor, magnitude: Tensor) -> Tensor:
+    """Force of every gripper, ``magnitude`` N from its point towards its anchor, ``[..., G, 3]``.
+
+    Args:
+        points: Gripping points ``[..., G, 3]`` (:func:`gripper_points`).
+        anchor: Space-fixed anchors ``[G, 3]`` (or ``[B, G, 3]``), broadcast against ``points``.
+        magnitude: Force magnitudes ``[G]`` (or ``[B, G]``), N.
+    """
+    d = anchor - points  # [..., G, 3]
+    return magnitude[..., None] * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
 class TrajectoryFormatError(ValueError):
     """A trajectory file or object is invalid; the message names the file and the field."""
 
@@ -107,12 +130,11 @@ class Trajectory:
 
     def gripper_positions(self) -> Tensor:
         """Gripping points (mean over the plies' gripped nodes) at every saved step, ``[T+1, G, 3]``."""
-        return self.pos[:, self.gripper_nodes].mean(2)
+        return gripper_points(self.pos, self.gripper_nodes)
 
     def gripper_force_vectors(self) -> Tensor:
         """Force of every gripper at every step, pointing at its anchor, ``[T+1, G, 3]``."""
-        d = self.gripper_anchor[None] - self.gripper_positions()
-        return self.gripper_force[None, :, None] * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return gripper_forces(self.gripper_positions(), self.gripper_anchor, self.gripper_force)
 
     def to(self, device: torch.device | str) -> Trajectory:
         """A copy with every tensor on ``device`` (shares storage where it is already there)."""

@@ -20,6 +20,7 @@ from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.mlp import LayerNormMLP
 from torch_ampn.nn.multilevel_loss import multilevel_mse, restrict_mean
 from torch_ampn.nn.normalizer import Normalizer
+from torch_ampn.nn.slots import SlottedEdgeIndex, incoming_slots
 from torch_ampn.nn.surrogate import AMPNSurrogate
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "IntraLevelConv",
     "LayerNormMLP",
     "Normalizer",
+    "SlottedEdgeIndex",
     "coarse_node_features",
     "component_features",
     "edge_features",
@@ -38,6 +40,7 @@ __all__ = [
     "geometric_beta_schedule",
     "gripper_features",
     "hierarchical_features",
+    "incoming_slots",
     "multilevel_mse",
     "node_type_one_hot",
     "num_coarse_node_features",

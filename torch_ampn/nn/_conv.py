@@ -8,6 +8,7 @@ from torch_geometric.nn.aggr import Aggregation
 from torch_geometric.nn.conv import MessagePassing
 
 from torch_ampn.nn.mlp import LayerNormMLP
+from torch_ampn.nn.slots import Edges, split_edges
 
 AGGREGATIONS = ("max", "sum", "mean")
 
@@ -19,36 +20,6 @@ def check_aggr(aggr: str | Aggregation) -> str | Aggregation:
     if aggr not in AGGREGATIONS:
         raise ValueError(f"aggr must be one of {AGGREGATIONS} or a torch_geometric Aggregation, got {aggr!r}")
     return aggr
-
-
-def incoming_slots(edge_index: Tensor, num_nodes: int, mask: Tensor | None = None) -> Tensor:
-    """Table of the incoming edges of every target node, for :meth:`EmbeddingConv.aggregate_slots`.
-
-    Built once per graph (eager, data-dependent width); an aggregation over it has static
-    shapes and needs no scatter, which is what a compiled CPU rollout spends most of its
-    network time on otherwise.
-
-    Args:
-        edge_index: ``LongTensor[2, E]``, rows ``(source, target)``.
-        num_nodes: Number of target nodes ``N``.
-        mask: Optional ``BoolTensor[E]``: edges to leave out.
-
-    Returns:
-        ``LongTensor[N, D]`` edge ids (by increasing id), ``-1`` in unused slots; ``D`` is
-        the largest in-degree (at least 1).
-    """
-    target = edge_index[1]
-    ids = torch.arange(target.numel(), device=target.device)
-    if mask is not None:
-        target, ids = target[mask], ids[mask]
-    order = torch.argsort(target * max(int(edge_index.size(1)), 1) + ids)  # by target, then id
-    target, ids = target[order], ids[order]
-    degree = torch.bincount(target, minlength=num_nodes)
-    width = max(int(degree.max()) if degree.numel() else 0, 1)
-    rank = torch.arange(target.numel(), device=target.device) - (torch.cumsum(degree, 0) - degree)[target]
-    slots = torch.full((num_nodes, width), -1, dtype=torch.long, device=target.device)
-    slots[target, rank] = ids
-    return slots
 
 
 class EmbeddingConv(MessagePassing):
@@ -86,16 +57,15 @@ class EmbeddingConv(MessagePassing):
             if isinstance(module, (nn.Linear, LayerNormMLP)):
                 module.reset_parameters()
 
-    def aggregate_edges(
-        self, edge_index: Tensor, edge_attr: Tensor, size: tuple[int, int], slots: Tensor | None
-    ) -> Tensor:
+    def aggregate_edges(self, edges: Edges, edge_attr: Tensor, size: tuple[int, int]) -> Tensor:
         """Aggregate the edge embeddings at their targets, ``[N_t, d]``.
 
-        With ``slots`` (:func:`incoming_slots` of ``edge_index``; only for ``"max"``, ``"sum"``
-        and ``"mean"``) as a dense reduction over each target's slots, else with PyG's
-        ``propagate``. Both give the same result (up to summation order); a target without
-        incoming edges gets zeros.
+        Edges that carry their aggregation table (a :class:`~torch_ampn.nn.SlottedEdgeIndex`;
+        used for ``"max"``, ``"sum"`` and ``"mean"``) are reduced densely over each target's
+        slots, others with PyG's ``propagate``. Both give the same result (up to summation
+        order); a target without incoming edges gets zeros.
         """
+        edge_index, slots = split_edges(edges)
         if slots is None or not isinstance(self.aggr, str):
             return self.propagate(edge_index, edge_attr=edge_attr, size=size)
         if edge_attr.size(0) == 0:  # no edge at all (static shape: decided at trace time)

@@ -15,6 +15,7 @@ from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.features import EDGE_FEATURES_CURRENT, EDGE_FEATURES_WITH_INITIAL
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
+from torch_ampn.nn.slots import split_edges
 
 
 class AMPN(nn.Module):
@@ -188,7 +189,6 @@ class AMPN(nn.Module):
         step: Tensor | None = None,
         batch_dict: dict[str, Tensor] | None = None,
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
-        slots_dict: dict[EdgeType, Tensor] | None = None,
     ) -> Tensor:
         """Predict the (normalised) residual of the ``l0`` nodes.
 
@@ -202,7 +202,10 @@ class AMPN(nn.Module):
             edge_index_dict: ``{(src, rel, dst): LongTensor[2, E]}`` rows ``(source, target)``:
                 ``("lk", "mesh", "lk")`` and ``("lk", "contact", "lk")`` for every used level
                 (a missing contact set counts as empty), ``("lk", "down", "lk+1")`` and
-                ``("lk+1", "up", "lk")`` between used levels. Other keys are ignored.
+                ``("lk+1", "up", "lk")`` between used levels. Other keys are ignored. Any
+                of them may be a :class:`~torch_ampn.nn.SlottedEdgeIndex` (the edges with
+                their aggregation table; what :class:`~torch_ampn.rollout.fast.FastRollout`
+                passes): those aggregate by a dense reduction (same result).
             edge_attr_dict: Edge features with the same keys.
             noise: Noise input of ``l0`` ``[N_0, noise_channels]`` (models with
                 ``noise_channels > 0`` only): the noisy target in ROBIN mode, N(0, 1) samples
@@ -213,9 +216,6 @@ class AMPN(nn.Module):
                 per-graph ``step``.
             contact_mask_dict: Optional ``{("lk", "contact", "lk"): BoolTensor[M_k]}``
                 validity masks of fixed-size contact tables (see :class:`IntraLevelConv`).
-            slots_dict: Optional :func:`~torch_ampn.nn._conv.incoming_slots` tables of any edge
-                sets (keys as ``edge_index_dict``): those aggregate by a dense reduction
-                (same result; what :class:`~torch_ampn.rollout.fast.FastRollout` passes).
 
         Returns:
             ``[N_0, out_channels]``.
@@ -247,7 +247,6 @@ class AMPN(nn.Module):
             parts += self._conditioning(k, x.size(0), step_code, batch_dict.get(lk), x)
             h.append(self.node_encoders["fine" if k == 0 else "coarse"](torch.cat(parts, dim=-1)))
 
-        slots_dict = slots_dict or {}
         mesh_index, mesh_e, contact_index, contact_e, contact_mask = [], [], [], [], []
         for k in range(num_levels):
             key = edge_type(MESH, k)
@@ -258,7 +257,7 @@ class AMPN(nn.Module):
                 contact_index.append(edge_index_dict[key])
                 contact_e.append(self.edge_encoders[CONTACT](edge_attr_dict[key]))
             else:
-                contact_index.append(mesh_index[-1].new_empty(2, 0))
+                contact_index.append(split_edges(mesh_index[-1])[0].new_empty(2, 0))
                 contact_e.append(mesh_e[-1].new_empty(0, self.hidden_channels))
             contact_mask.append(None if contact_mask_dict is None else contact_mask_dict.get(key))
 
@@ -272,24 +271,21 @@ class AMPN(nn.Module):
         def intra_stack(stack: nn.ModuleList, k: int) -> None:
             for conv in stack:
                 h[k], mesh_e[k], contact_e[k] = conv(
-                    h[k], mesh_index[k], mesh_e[k], contact_index[k], contact_e[k], contact_mask[k],
-                    slots_dict.get(edge_type(MESH, k)), slots_dict.get(edge_type(CONTACT, k)),
-                )  # fmt: skip
+                    h[k], mesh_index[k], mesh_e[k], contact_index[k], contact_e[k], contact_mask[k]
+                )
 
         # ---- V-cycle -----------------------------------------------------------------
         for k in range(num_levels - 1):
             intra_stack(self.pre, k)
             for conv in self.down:
-                h[k + 1], down_e[k] = conv(
-                    (h[k], h[k + 1]), down_index[k], down_e[k], slots_dict.get(edge_type(DOWN, k))
-                )
+                h[k + 1], down_e[k] = conv((h[k], h[k + 1]), down_index[k], down_e[k])
         coarsest = num_levels - 1
         intra_stack(self.pre, coarsest)
         intra_stack(self.solve, coarsest)
         intra_stack(self.post, coarsest)
         for k in range(num_levels - 2, -1, -1):
             for conv in self.up:
-                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k], slots_dict.get(edge_type(UP, k)))
+                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k])
             intra_stack(self.post, k)
 
         return self.decoder(h[0])

@@ -26,6 +26,8 @@ The level encoding is added inside the model, and normalisation is a separate st
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -305,6 +307,95 @@ def edge_features(
     return torch.cat(parts, dim=-1)
 
 
+def step_features(
+    pos: Tensor,
+    pos0: Tensor,
+    prev_disp: Tensor,
+    bc_disp: Tensor,
+    node_type: Tensor,
+    component: Tensor,
+    fiber: Tensor,
+    gripper_pos: Tensor,
+    gripper_force: Tensor,
+    fine_index: Sequence[Tensor],
+    edge_index_dict: Mapping[EdgeType, Tensor],
+    num_components: int,
+    *,
+    batch: Tensor | None = None,
+    alpha: float = 3e-2,
+    eps: float = 1e-8,
+    component_encoding: str = "onehot",
+    prior: Tensor | None = None,
+) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+    r"""All node and edge features of one step from plain tensors (the one feature step of every path).
+
+    The plain path reads these tensors from a window (:func:`hierarchical_features`); the
+    fast rollout (:class:`~torch_ampn.rollout.fast.FastRollout`) passes its fixed-shape ones,
+    with every slot of a contact table as an edge (invalid slots are masked later by the
+    network). Coarse node ``j`` of level ``k`` takes position and node type from the fine node
+    ``fine_index[k - 1][j]``.
+
+    Args:
+        pos: Positions :math:`x^{t-1}` of the fine nodes ``[N, 3]``.
+        pos0: Initial positions ``[N, 3]``.
+        prev_disp: Previous residual :math:`\Delta u^{t-1}` ``[N, 3]``.
+        bc_disp: Prescribed tool motion of this step ``[N, 3]`` (zero on plies).
+        node_type: ``LongTensor[N]``.
+        component: ``LongTensor[N]``.
+        fiber: Fiber direction ``[N, 3]``.
+        gripper_pos: Gripping points ``[G, 3]`` or ``[B, G, 3]`` (:func:`~torch_ampn.data.gripper_points`).
+        gripper_force: Gripper forces, same shape (:func:`~torch_ampn.data.gripper_forces`).
+        fine_index: For levels ``1 .. L - 1``, the fine node of each coarse node ``LongTensor[N_k]``
+            (``L - 1`` tensors: the levels used).
+        edge_index_dict: Edge indices keyed like :attr:`HierarchicalData.edge_index_dict`; a
+            missing contact edge set counts as empty.
+        num_components: ``C``.
+        batch: Graph of every fine node (for a batch of ``B`` graphs).
+        alpha: See :func:`gripper_features`.
+        eps: See :func:`gripper_features`.
+        component_encoding: See :func:`component_features`.
+        prior: :func:`prior_features` of the fine nodes ``[N, 6]``, or ``None``.
+
+    Returns:
+        ``(x_dict, edge_attr_dict)`` as :func:`hierarchical_features`.
+    """
+    num_levels = len(fine_index) + 1
+    grip = gripper_features(pos, gripper_pos, gripper_force, batch, alpha, eps)
+    x_dict = {
+        "l0": fine_node_features(
+            node_type,
+            prev_disp,
+            bc_disp,
+            fiber,
+            component,
+            num_components,
+            grip,
+            component_encoding,
+            batch,
+            prior,
+        )
+    }
+    pos_l, pos0_l = [pos], [pos0]
+    for k, idx in enumerate(fine_index, start=1):
+        pos_l.append(pos[idx])  # [N_k, 3]
+        pos0_l.append(pos0[idx])
+        x_dict[level_name(k)] = coarse_node_features(node_type[idx], pos.dtype)
+    empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    edge_attr_dict: dict[EdgeType, Tensor] = {}
+    for k in range(num_levels):
+        key = edge_type(MESH, k)
+        edge_attr_dict[key] = edge_features(edge_index_dict[key], pos_l[k], pos_l[k], pos0_l[k], pos0_l[k])
+        key = edge_type(CONTACT, k)
+        edge_attr_dict[key] = edge_features(edge_index_dict.get(key, empty), pos_l[k], pos_l[k])
+        if k + 1 < num_levels:
+            for rel, src, dst in ((DOWN, k, k + 1), (UP, k + 1, k)):
+                key = edge_type(rel, k)
+                edge_attr_dict[key] = edge_features(
+                    edge_index_dict[key], pos_l[src], pos_l[dst], pos0_l[src], pos0_l[dst]
+                )
+    return x_dict, edge_attr_dict
+
+
 def hierarchical_features(
     data: HierarchicalData,
     num_components: int,
@@ -319,8 +410,9 @@ def hierarchical_features(
     Reads ``data["l0"]``'s ``pos0``, ``pos``, ``prev_disp``, ``bc_disp``, ``node_type``,
     ``component``, ``fiber`` (and ``batch`` when batched) and the graph-level
     ``data.gripper_pos`` / ``data.gripper_force`` (``[B, G, 3]``; ``[1, G, 3]`` per graph
-    batches to that). Coarse nodes take position and node type from their root fine node
-    (``data.fine_index(k)``). A missing contact edge set counts as empty.
+    batches to that), and computes them with :func:`step_features`. Coarse nodes take
+    position and node type from their root fine node (``data.fine_index(k)``). A missing
+    contact edge set counts as empty.
 
     Args:
         data: The hierarchy (or a batch of hierarchies).
@@ -341,8 +433,6 @@ def hierarchical_features(
     """
     num_levels = data.num_levels if num_levels is None else num_levels
     fine = data["l0"]
-    pos, pos0 = fine.pos, fine.pos0
-    batch = fine.batch if "batch" in fine else None
     prior_columns = None
     if prior:
         if "prior_pos" not in fine or "prior_next" not in fine:
@@ -350,45 +440,23 @@ def hierarchical_features(
                 "the model takes prior features but the data has no prior (l0.prior_pos / prior_next): "
                 "set the trajectories' prior (AMPNDataModule's data.prior)"
             )
-        prior_columns = prior_features(pos, fine.prior_pos, fine.prior_next)
-    x_dict = {
-        "l0": fine_node_features(
-            fine.node_type,
-            fine.prev_disp,
-            fine.bc_disp,
-            fine.fiber,
-            fine.component,
-            num_components,
-            gripper_features(pos, data.gripper_pos, data.gripper_force, batch, alpha, eps),
-            component_encoding,
-            batch,
-            prior_columns,
-        )
-    }
-    pos_l, pos0_l = [pos], [pos0]
-    for k in range(1, num_levels):
-        idx = data.fine_index(k)  # [N_k]
-        pos_l.append(pos[idx])
-        pos0_l.append(pos0[idx])
-        x_dict[level_name(k)] = coarse_node_features(fine.node_type[idx], pos.dtype)
-
-    edge_attr_dict: dict[EdgeType, Tensor] = {}
-    for k in range(num_levels):
-        for rel in (MESH, CONTACT):
-            key = edge_type(rel, k)
-            if key in data.edge_types:
-                ei = data[key].edge_index
-            else:
-                ei = torch.empty(2, 0, dtype=torch.long, device=pos.device)
-            initial = (pos0_l[k], pos0_l[k]) if rel == MESH else (None, None)
-            edge_attr_dict[key] = edge_features(ei, pos_l[k], pos_l[k], *initial)
-        if k + 1 < num_levels:
-            key = edge_type(DOWN, k)
-            edge_attr_dict[key] = edge_features(
-                data[key].edge_index, pos_l[k], pos_l[k + 1], pos0_l[k], pos0_l[k + 1]
-            )
-            key = edge_type(UP, k)
-            edge_attr_dict[key] = edge_features(
-                data[key].edge_index, pos_l[k + 1], pos_l[k], pos0_l[k + 1], pos0_l[k]
-            )
-    return x_dict, edge_attr_dict
+        prior_columns = prior_features(fine.pos, fine.prior_pos, fine.prior_next)
+    return step_features(
+        fine.pos,
+        fine.pos0,
+        fine.prev_disp,
+        fine.bc_disp,
+        fine.node_type,
+        fine.component,
+        fine.fiber,
+        data.gripper_pos,
+        data.gripper_force,
+        [data.fine_index(k) for k in range(1, num_levels)],
+        {key: data[key].edge_index for key in data.edge_types},
+        num_components,
+        batch=fine.batch if "batch" in fine else None,
+        alpha=alpha,
+        eps=eps,
+        component_encoding=component_encoding,
+        prior=prior_columns,
+    )

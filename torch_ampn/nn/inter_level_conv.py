@@ -7,6 +7,7 @@ from torch import Tensor
 from torch_geometric.nn.aggr import Aggregation
 
 from torch_ampn.nn._conv import EmbeddingConv
+from torch_ampn.nn.slots import Edges, split_edges
 
 
 class InterLevelConv(EmbeddingConv):
@@ -54,16 +55,16 @@ class InterLevelConv(EmbeddingConv):
         self.reset_parameters()
 
     def forward(
-        self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor, slots: Tensor | None = None
+        self, x: tuple[Tensor, Tensor], edge_index: Edges, edge_attr: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Run one layer of eq. (2).
 
         Args:
             x: ``(x_src [N_s, d], x_dst [N_t, d])``: sender and receiver embeddings.
-            edge_index: ``[2, E]``, rows ``(source j in x_src, target i in x_dst)``.
+            edge_index: ``[2, E]``, rows ``(source j in x_src, target i in x_dst)``; a
+                :class:`~torch_ampn.nn.SlottedEdgeIndex` aggregates by a dense reduction over
+                its table (same result).
             edge_attr: Edge embeddings ``[E, d]``.
-            slots: Optional :func:`~torch_ampn.nn._conv.incoming_slots` of ``edge_index``
-                (aggregation by a dense reduction; same result).
 
         Returns:
             ``(x_dst, edge_attr)``: new receiver embeddings ``[N_t, d]`` and edge embeddings ``[E, d]``.
@@ -71,8 +72,8 @@ class InterLevelConv(EmbeddingConv):
         x_src, x_dst = x
         size = (x_src.size(0), x_dst.size(0))
         edge_attr = self.mlp_edge.forward_edges(
-            x_dst, x_src, edge_attr, edge_index, self.lin_edge.weight
+            x_dst, x_src, edge_attr, split_edges(edge_index)[0], self.lin_edge.weight
         )  # [E, d]: W e + f(k_i, k_j, e)
-        agg = self.aggregate_edges(edge_index, edge_attr, size, slots)  # [N_t, d]
+        agg = self.aggregate_edges(edge_index, edge_attr, size)  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr

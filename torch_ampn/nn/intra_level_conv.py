@@ -8,6 +8,7 @@ from torch_geometric.nn.aggr import Aggregation
 from torch_geometric.typing import OptTensor
 
 from torch_ampn.nn._conv import EmbeddingConv
+from torch_ampn.nn.slots import Edges, split_edges
 
 
 class IntraLevelConv(EmbeddingConv):
@@ -65,52 +66,51 @@ class IntraLevelConv(EmbeddingConv):
     def forward(
         self,
         x: Tensor,
-        mesh_index: Tensor,
+        mesh_index: Edges,
         e_mesh: Tensor,
-        contact_index: Tensor,
+        contact_index: Edges,
         e_contact: Tensor,
         contact_mask: OptTensor = None,
-        mesh_slots: OptTensor = None,
-        contact_slots: OptTensor = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Run one layer of eq. (1).
 
         Args:
             x: Node embeddings ``[N, d]``.
-            mesh_index: Mesh edges ``[2, E]``, rows ``(source j, target i)``.
+            mesh_index: Mesh edges ``[2, E]``, rows ``(source j, target i)``; a
+                :class:`~torch_ampn.nn.SlottedEdgeIndex` aggregates by a dense reduction over
+                its table instead of a scatter (same result; faster where the graph is fixed,
+                as in a rollout).
             e_mesh: Mesh edge embeddings ``[E, d]``.
-            contact_index: Contact edges ``[2, M]``, rows ``(source j, target i)``.
+            contact_index: Contact edges ``[2, M]``, rows ``(source j, target i)``, plain or
+                slotted (its table then leaves the masked slots out).
             e_contact: Contact edge embeddings ``[M, d]``.
             contact_mask: Optional ``BoolTensor[M]``: ``False`` marks an unused slot of a
                 fixed-size contact table. Such edges do not contribute to the aggregation
                 (exactly as if they were removed) and their output embeddings are zero;
                 their indices must still be valid node indices (e.g. the node itself).
-            mesh_slots: Optional :func:`~torch_ampn.nn._conv.incoming_slots` of ``mesh_index``:
-                aggregate by a dense reduction instead of a scatter (same result; faster
-                where the graph is fixed, as in a rollout).
-            contact_slots: The same for the contact edges (masked slots left out).
 
         Returns:
             ``(x, e_mesh, e_contact)`` with the shapes of the inputs.
         """
         num_nodes = x.size(0)
+        contact_edges, contact_slots = split_edges(contact_index)  # [2, M], [N, D] or None
         # W e + f(k_i, k_j, e), the residual map sharing the MLP's product with e
-        e_contact = self.mlp_contact.forward_edges(x, x, e_contact, contact_index, self.lin_contact.weight)
-        e_mesh = self.mlp_mesh.forward_edges(x, x, e_mesh, mesh_index, self.lin_mesh.weight)  # [E, d]
+        e_contact = self.mlp_contact.forward_edges(x, x, e_contact, contact_edges, self.lin_contact.weight)
+        e_mesh = self.mlp_mesh.forward_edges(x, x, e_mesh, split_edges(mesh_index)[0], self.lin_mesh.weight)
 
         size = (num_nodes, num_nodes)
-        agg_mesh = self.aggregate_edges(mesh_index, e_mesh, size, mesh_slots)  # [N, d]
+        agg_mesh = self.aggregate_edges(mesh_index, e_mesh, size)  # [N, d]
         if contact_slots is not None and isinstance(self.aggr, str):  # masked slots are left out
-            agg_contact = self.aggregate_edges(contact_index, e_contact, size, contact_slots)
+            agg_contact = self.aggregate_edges(contact_index, e_contact, size)
             if contact_mask is not None:
                 e_contact = torch.where(contact_mask.unsqueeze(-1), e_contact, 0.0)
         elif contact_mask is None:
-            agg_contact = self.propagate(contact_index, edge_attr=e_contact, size=(num_nodes, num_nodes))
+            agg_contact = self.propagate(contact_edges, edge_attr=e_contact, size=(num_nodes, num_nodes))
         else:
             # Send masked-out messages to a dummy node N, dropped afterwards: exact for
             # every aggregation (max, sum, mean) and free of data-dependent shapes.
-            target = torch.where(contact_mask, contact_index[1], num_nodes)  # [M]
-            index = torch.stack([contact_index[0], target])  # [2, M]
+            target = torch.where(contact_mask, contact_edges[1], num_nodes)  # [M]
+            index = torch.stack([contact_edges[0], target])  # [2, M]
             agg_contact = self.propagate(index, edge_attr=e_contact, size=(num_nodes, num_nodes + 1))
             agg_contact = agg_contact[:num_nodes]  # [N, d]
             e_contact = torch.where(contact_mask.unsqueeze(-1), e_contact, 0.0)

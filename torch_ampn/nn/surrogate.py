@@ -219,13 +219,18 @@ class AMPNSurrogate(nn.Module):
             prior=self.prior_features,
         )
 
+    def normalize(
+        self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor]
+    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+        """Normalised node and edge features (of :func:`~torch_ampn.nn.features.step_features`), same keys."""
+        x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
+        return x_dict, {key: self.edge_norm[key[1]](e) for key, e in edge_attr_dict.items()}
+
     def normalized_features(
         self, data: HierarchicalData
     ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor]]:
         """``(x_dict, edge_index_dict, edge_attr_dict)`` of the used levels, normalised."""
-        x_dict, e_dict = self._raw_features(data)
-        x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
-        e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
+        x_dict, e_dict = self.normalize(*self._raw_features(data))
         if getattr(self.model, "needs_positions", False):
             fine = data["l0"]
             x_dict["pos"] = self.position_norm(fine.pos)  # [N_0, 3]

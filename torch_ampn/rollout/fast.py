@@ -25,7 +25,6 @@ setting draws its noise from its own generator, so a batch equals its settings o
 
 from __future__ import annotations
 
-import functools
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -33,12 +32,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
+from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type
 from torch_ampn.data.node_type import NodeType
-from torch_ampn.data.trajectory import Trajectory
-from torch_ampn.nn._conv import incoming_slots
-from torch_ampn.nn.features import edge_features, fine_node_features, gripper_features, prior_features
+from torch_ampn.data.trajectory import Trajectory, gripper_forces, gripper_points
+from torch_ampn.nn.features import prior_features, step_features
+from torch_ampn.nn.slots import SlottedEdgeIndex
 from torch_ampn.nn.surrogate import AMPNSurrogate
+from torch_ampn.rollout.plain import next_positions
 from torch_ampn.transforms.candidates import (
     CandidateState,
     ContactCandidates,
@@ -245,24 +245,17 @@ class FastRollout:
             (h.fine_index(k)[None] + shift).reshape(-1) for k in range(1, self.num_levels)
         ]  # level k -> rows of the batched l0
         self.level_component = [self.component[idx] for idx in self.fine_index]
-        self.edges: dict = {}
+        edges: dict[tuple, Tensor] = {}  # the fixed edge sets of B settings
         for k in range(self.num_levels):
-            self.edges[edge_type(MESH, k)] = repeat_edges(h[edge_type(MESH, k)].edge_index, k, k)
+            edges[edge_type(MESH, k)] = repeat_edges(h[edge_type(MESH, k)].edge_index, k, k)
             if k + 1 < self.num_levels:
-                self.edges[edge_type(DOWN, k)] = repeat_edges(h[edge_type(DOWN, k)].edge_index, k, k + 1)
-                self.edges[edge_type(UP, k)] = repeat_edges(h[edge_type(UP, k)].edge_index, k + 1, k)
-        # aggregation tables of the fixed edge sets (dense reductions instead of scatters)
-        self.slots = {
-            key: incoming_slots(index, b * sizes[int(key[2][1:])]) for key, index in self.edges.items()
+                edges[edge_type(DOWN, k)] = repeat_edges(h[edge_type(DOWN, k)].edge_index, k, k + 1)
+                edges[edge_type(UP, k)] = repeat_edges(h[edge_type(UP, k)].edge_index, k + 1, k)
+        # with the aggregation tables of the fixed edge sets (dense reductions instead of scatters)
+        self.edges = {
+            key: SlottedEdgeIndex.build(index, b * sizes[int(key[2][1:])]) for key, index in edges.items()
         }
-        # features that never change: the coarse nodes' types (normalised at every step)
         s = surrogate
-        self.coarse_types = {
-            level_name(k): torch.nn.functional.one_hot(
-                self.node_type[self.fine_index[k]].long(), NodeType.count()
-            ).float()
-            for k in range(1, self.num_levels)
-        }
         contact = s.contact
         self.radius = [contact.level_radius(k) for k in range(self.num_levels)]
         self.k = contact.k
@@ -282,13 +275,13 @@ class FastRollout:
                 skin=skin,
                 capacity=capacity,
                 mode=modes[k],
-            )  # fmt: skip
+            )
             for k in range(self.num_levels)
         ]
         self.contact_target = [
             torch.arange(b * n, device=dev).repeat_interleave(self.k * (s.num_components - 1)) for n in sizes
         ]
-        self._static_contact: list[tuple[Tensor, Tensor, Tensor]] | None = None
+        self._static_contact: list[tuple[SlottedEdgeIndex, Tensor]] | None = None
         self._capacity = [0] * self.num_levels  # compacted contact edges per level (see _compact)
         self.cpp_wrapper = False
         # the step's callables: compiled where compile=True, each falling back to its eager code
@@ -338,78 +331,73 @@ class FastRollout:
         anchor: Tensor,
         magnitude: Tensor,
         fiber: Tensor,
-        pos0_l: list[Tensor],
+        pos0: Tensor,
         prior_pos: Tensor | None,
         prior_next: Tensor | None,
         states: list[CandidateState | DenseState | PatchState | None],
-        contact: list[tuple[Tensor, Tensor, Tensor] | None],
-    ) -> tuple[dict, dict, dict, dict, dict, Tensor, Tensor]:
-        """A step's normalised features, edges, contact masks, slot tables, previous displacement, exactness.
+        contact: list[tuple[SlottedEdgeIndex, Tensor] | None],
+    ) -> tuple[dict, dict, dict, dict, Tensor, Tensor]:
+        """A step's normalised features, edges (with slot tables), contact masks, previous residual, exact.
 
-        The previous displacement is ``[B N, 3]``; the exactness flags (one per level) say
-        whether the level's selected contact table is guaranteed exact. ``pos`` and ``prev``
-        are the positions ``[B N, 3]`` at steps ``t - 1`` and ``t - 2`` (``prev = pos`` at the
-        first step), ``tool_next`` those at ``t`` with the tools on their path; the grippers
-        hold ply nodes (``gripper_nodes [B, G, m]``) and pull them towards ``anchor [B, G, 3]``
-        with force ``magnitude [B, G, 1]``, as the plain rollout does. Level ``k``'s contact
-        edges are ``contact[k]`` (searched outside: edge index, validity, slot table) or else
-        selected here from ``states[k]``. A model with prior features reads the prior's
-        positions at ``t - 1`` and ``t`` (``prior_pos``, ``prior_next`` ``[B N, 3]``; else ``None``).
+        The features are :func:`~torch_ampn.nn.features.step_features` normalised by
+        :meth:`AMPNSurrogate.normalize <torch_ampn.nn.AMPNSurrogate.normalize>`, as on the plain
+        path; what is this path's own is the contact tables' fixed shapes. The previous
+        displacement is ``[B N, 3]``; the exactness flags (one per level) say whether the
+        level's selected contact table is guaranteed exact. ``pos`` and ``prev`` are the
+        positions ``[B N, 3]`` at steps ``t - 1`` and ``t - 2`` (``prev = pos`` at the first
+        step), ``tool_next`` those at ``t`` with the tools on their path, ``pos0`` the initial
+        ones; the grippers hold ply nodes (``gripper_nodes [B, G, m]``) and pull them towards
+        ``anchor [B, G, 3]`` with force ``magnitude [B, G]``. Level ``k``'s contact edges are
+        ``contact[k]`` (searched outside: edges with their slot table, validity) or else selected
+        here from ``states[k]``. A model with prior features reads the prior's positions at
+        ``t - 1`` and ``t`` (``prior_pos``, ``prior_next`` ``[B N, 3]``; else ``None``).
         """
         s = self.surrogate
         prev_disp = pos - prev  # [B N, 3]
         bc_disp = torch.where(self.ply[:, None], 0.0, tool_next - pos)  # [B N, 3]
-        gripper_pos = pos[gripper_nodes].mean(2)  # [B, G, 3]
-        d = anchor - gripper_pos
-        gripper_force = magnitude * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # [B, G, 3]
-        pos_l = [pos] + [pos[idx] for idx in self.fine_index[1:]]
+        gripper_pos = gripper_points(pos, gripper_nodes)  # [B, G, 3]
         exact = []  # per level: the selected table is guaranteed exact
-        edges = []
+        index_dict, mask_dict = {}, {}  # edges with their aggregation tables, contact validity
         for k in range(self.num_levels):
-            if contact[k] is not None:
-                edges.append(contact[k])
-                exact.append(torch.ones((), dtype=torch.bool, device=pos.device))
-                continue
-            nbr, mask, ok = select_table(
-                pos_l[k], states[k], self.radius[k], self.k, self.candidates[k].num_groups
-            )
-            slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
-            index = torch.stack([nbr.reshape(-1), self.contact_target[k]])
-            edges.append((index, mask.reshape(-1), torch.where(mask, slot_ids, -1)))  # the table's layout
-            exact.append(ok)
-        grip = gripper_features(pos, gripper_pos, gripper_force, self.batch0, s.gripper_alpha)
-        x = fine_node_features(
-            self.node_type,
-            prev_disp,
-            bc_disp,
-            fiber,
-            self.component,
-            s.num_components,
-            grip,
-            s.component_encoding,
-            self.batch0,
-            None if prior_pos is None else prior_features(pos, prior_pos, prior_next),
-        )
-        x_dict = {"l0": s.node_norm["fine"](x)}
-        x_dict.update({lk: s.node_norm["coarse"](t) for lk, t in self.coarse_types.items()})
-        index_dict, e_dict, mask_dict, slots = {}, {}, {}, dict(self.slots)
-        for k in range(self.num_levels):
-            key = edge_type(MESH, k)
-            index_dict[key] = self.edges[key]
-            e_dict[key] = s.edge_norm[MESH](
-                edge_features(self.edges[key], pos_l[k], pos_l[k], pos0_l[k], pos0_l[k])
-            )
+            index_dict[edge_type(MESH, k)] = self.edges[edge_type(MESH, k)]
             key = edge_type(CONTACT, k)
-            index_dict[key], mask_dict[key], slots[key] = edges[k]
-            e_dict[key] = s.edge_norm[CONTACT](edge_features(index_dict[key], pos_l[k], pos_l[k]))
+            if contact[k] is not None:
+                index_dict[key], mask_dict[key] = contact[k]
+                exact.append(torch.ones((), dtype=torch.bool, device=pos.device))
+            else:
+                pos_k = pos if k == 0 else pos[self.fine_index[k]]  # [B N_k, 3]
+                groups = self.candidates[k].num_groups
+                nbr, mask, ok = select_table(pos_k, states[k], self.radius[k], self.k, groups)
+                slot_ids = torch.arange(mask.numel(), device=mask.device).view(mask.shape)
+                index = torch.stack([nbr.reshape(-1), self.contact_target[k]])  # every slot an edge
+                table = torch.where(mask, slot_ids, -1)  # the table's own layout, masked slots left out
+                index_dict[key] = SlottedEdgeIndex(index, table)
+                mask_dict[key] = mask.reshape(-1)
+                exact.append(ok)
             if k + 1 < self.num_levels:
-                for rel, src, dst in ((DOWN, k, k + 1), (UP, k + 1, k)):
-                    key = edge_type(rel, k)
+                for key in (edge_type(DOWN, k), edge_type(UP, k)):
                     index_dict[key] = self.edges[key]
-                    e_dict[key] = s.edge_norm[rel](
-                        edge_features(self.edges[key], pos_l[src], pos_l[dst], pos0_l[src], pos0_l[dst])
-                    )
-        return x_dict, index_dict, e_dict, mask_dict, slots, prev_disp, torch.stack(exact)
+        x_dict, e_dict = s.normalize(
+            *step_features(
+                pos,
+                pos0,
+                prev_disp,
+                bc_disp,
+                self.node_type,
+                self.component,
+                fiber,
+                gripper_pos,
+                gripper_forces(gripper_pos, anchor, magnitude),
+                self.fine_index[1:],
+                {key: edges.edge_index for key, edges in index_dict.items()},
+                s.num_components,
+                batch=self.batch0,
+                alpha=s.gripper_alpha,
+                component_encoding=s.component_encoding,
+                prior=None if prior_pos is None else prior_features(pos, prior_pos, prior_next),
+            )
+        )
+        return x_dict, index_dict, e_dict, mask_dict, prev_disp, torch.stack(exact)
 
     def _step_fused(self, *args) -> tuple[Tensor, Tensor]:
         """One step of a ``K = 1`` model: ``(positions at t [B N, 3], exact per level)``.
@@ -417,15 +405,18 @@ class FastRollout:
         ``args`` as :meth:`_step_inputs`, with the noise list before ``states`` and ``contact``.
         """
         *inputs, noise, states, contact = args
-        x_dict, index_dict, e_dict, mask_dict, slots, prev_disp, exact = self._step_inputs(
-            *inputs, states, contact
-        )
-        network = functools.partial(self.surrogate.model, slots_dict=slots)
+        x_dict, index_dict, e_dict, mask_dict, prev_disp, exact = self._step_inputs(*inputs, states, contact)
         du = self.surrogate.residual_from_features(
-            x_dict, index_dict, e_dict, prev_disp, mask_dict, network=network, draw=iter(noise).__next__
+            x_dict,
+            index_dict,
+            e_dict,
+            prev_disp,
+            mask_dict,
+            network=self.surrogate.model,
+            draw=iter(noise).__next__,
         )
         pos, tool_next = inputs[0], inputs[2]
-        return torch.where(self.ply[:, None], pos + du.float(), tool_next), exact
+        return next_positions(self.ply, pos, du, tool_next), exact
 
     def _checked(self, call, *args) -> tuple:
         """``call(*args, states, contact)``, searching the contact candidates again where not exact.
@@ -441,7 +432,7 @@ class FastRollout:
         def level_pos(k: int) -> Tensor:  # [B N_k, 3], only where a search needs it
             return pos if k == 0 else pos[self.fine_index[k]]
 
-        contact: list[tuple[Tensor, Tensor, Tensor] | None] = [None] * self.num_levels
+        contact: list[tuple[SlottedEdgeIndex, Tensor] | None] = [None] * self.num_levels
         for k, cand in enumerate(self.candidates):
             if cand.state is None or cand.mode == "search":
                 cand.build(level_pos(k))
@@ -458,8 +449,8 @@ class FastRollout:
         states = [None if contact[k] is not None else c.state for k, c in enumerate(self.candidates)]
         return call(*args, states, contact)[:-1]
 
-    def _compact(self, level: int, nbr: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The used slots of a contact table as an edge list padded to a capacity, and its slot table.
+    def _compact(self, level: int, nbr: Tensor, mask: Tensor) -> tuple[SlottedEdgeIndex, Tensor]:
+        """The used slots of a contact table: edges padded to a capacity, with their slot table; validity.
 
         The capacity (a multiple of 1024, a quarter above the largest count seen) changes
         rarely, so the compiled step keeps its shapes; padding edges are masked self-loops.
@@ -477,7 +468,7 @@ class FastRollout:
         valid = torch.arange(cap, device=used.device) < count
         position = torch.cumsum(used.long(), 0) - 1  # index of each used slot in the edge list
         slots = torch.where(mask, position.view(mask.shape), -1)
-        return torch.stack([source, target]), valid, slots
+        return SlottedEdgeIndex(torch.stack([source, target]), slots), valid
 
     # ---- the rollout ------------------------------------------------------------------------
     @torch.no_grad()
@@ -524,9 +515,10 @@ class FastRollout:
             [t.gripper_nodes.to(dev) + i * n for i, t in enumerate(trajs)]
         )  # [B, G, m]
         anchor = torch.stack([t.gripper_anchor.to(dev) for t in trajs]).float()  # [B, G, 3]
-        magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).float()[..., None]  # [B, G, 1]
+        magnitude = torch.stack([t.gripper_force.to(dev) for t in trajs]).float()  # [B, G]
         fiber = torch.cat([t.fiber.to(dev).float() for t in trajs])  # [B N, 3]
-        pos0_l = [tool_path[0][idx] for idx in self.fine_index]
+        pos0 = tool_path[0]  # [B N, 3]
+        pos0_l = [pos0[idx] for idx in self.fine_index]
         prior_path = None
         if self.surrogate.prior_features:
             missing = [i for i, t in enumerate(trajs[:count]) if t.prior is None]
@@ -542,10 +534,14 @@ class FastRollout:
             self._static_contact = []
             for k, cand in enumerate(self.candidates):
                 nbr, mask = component_radius_table(
-                    pos0_l[k], self.level_component[k], self.radius[k], self.k,
-                    num_components=self.surrogate.num_components, batch=cand.batch,
+                    pos0_l[k],
+                    self.level_component[k],
+                    self.radius[k],
+                    self.k,
+                    num_components=self.surrogate.num_components,
+                    batch=cand.batch,
                     backend=self.surrogate.contact.backend,
-                )  # fmt: skip
+                )
                 self._static_contact.append(self._compact(k, nbr, mask))
         ply = self.ply
         pred = tool_path.clone()  # [T+1, B N, 3]: tools on their path, plies predicted
@@ -569,21 +565,17 @@ class FastRollout:
                 pos = pred[t - 1]
                 prev = pred[max(t - 2, 0)]  # the first step has no previous displacement
                 priors = (None, None) if prior_path is None else (prior_path[t - 1], prior_path[t])
-                inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0_l, *priors)
+                inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0, *priors)
                 noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
                 if self.surrogate.diffusion_steps == 1:
                     (pred[t],) = self._checked(self._fused, *inputs, noise)
                 else:
-                    *features, prev_disp = self._checked(self._inputs, *inputs)
-                    du = self._residual(*features[:3], prev_disp, *features[3:], noise)
-                    pred[t] = torch.where(ply[:, None], pos + du, pred[t])
+                    du = self._residual(*self._checked(self._inputs, *inputs), noise)
+                    pred[t] = next_positions(ply, pos, du, pred[t])
         return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
 
-    def _residual(
-        self, x_dict, index_dict, e_dict, prev_disp, mask_dict, slots, noise: list[Tensor]
-    ) -> Tensor:
+    def _residual(self, x_dict, index_dict, e_dict, mask_dict, prev_disp, noise: list[Tensor]) -> Tensor:
         """The K-step sampled residual ``[B N, 3]`` from a step's features, with the network ``K`` times."""
-        network = functools.partial(self._network, slots_dict=slots)
         return self.surrogate.residual_from_features(
-            x_dict, index_dict, e_dict, prev_disp, mask_dict, network=network, draw=iter(noise).__next__
+            x_dict, index_dict, e_dict, prev_disp, mask_dict, network=self._network, draw=iter(noise).__next__
         ).float()

@@ -110,8 +110,17 @@ def rollout(
             if static_contact:
                 edges = [data.contact(level).edge_index for level in range(data.num_levels)]
         du = predictor(data).float()  # [N, 3]
-        pred[t] = torch.where(ply[:, None], pred[t - 1] + du, pred[t])
+        pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
     return pred[: steps + 1].cpu()
+
+
+def next_positions(ply: Tensor, pos: Tensor, residual: Tensor, tool_next: Tensor) -> Tensor:
+    """The positions at step ``t`` ``[N, 3]``, the update of every rollout.
+
+    Ply nodes (``ply``, ``BoolTensor[N]``) move by ``residual`` from ``pos`` (step ``t - 1``);
+    tool nodes are on their prescribed path ``tool_next``.
+    """
+    return torch.where(ply[:, None], pos + residual.float(), tool_next)
 
 
 def rollout_rmse(pred: Tensor, true: Tensor, mask: Tensor | None = None) -> Tensor:
