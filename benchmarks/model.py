@@ -27,7 +27,8 @@ from pathlib import Path
 import torch
 
 from torch_ampn.data import NodeType, build_hierarchy, laminate_mesh, level_name
-from torch_ampn.nn import AMPN, Normalizer, hierarchical_features, num_fine_node_features
+from torch_ampn.forming import Normalizer, ampn_channels, hierarchical_features
+from torch_ampn.nn import AMPN
 
 from device_info import device_name  # benchmarks/device_info.py, beside this script
 
@@ -120,10 +121,10 @@ def time_steps(step, repeats: int, warmup: int, device: torch.device) -> list[fl
 
 
 def run_variant(args, data, device, num_levels: int, dtype: str, compiled: bool) -> dict:
-    h, x_dict, e_dict, ei_dict, fine_in = data
+    h, x_dict, e_dict, ei_dict, sizes = data
     torch.manual_seed(0)
     width = dict(hidden_channels=args.hidden, mlp_channels=args.hidden)
-    model = AMPN(fine_in, **width, num_levels=num_levels, noise_channels=3).to(device)
+    model = AMPN(**sizes, **width, num_levels=num_levels, noise_channels=3).to(device)
     fn = torch.compile(model) if compiled else model
     noise = torch.randn(x_dict["l0"].size(0), 3, device=device)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=dtype == "bf16")
@@ -198,7 +199,7 @@ def main() -> None:
     x_dict = {k: v.to(device) for k, v in x_dict.items()}
     e_dict = {k: v.to(device) for k, v in e_dict.items()}
     ei_dict = {k: v.to(device) for k, v in h.edge_index_dict.items()}
-    data = (h, x_dict, e_dict, ei_dict, num_fine_node_features(num_components, NUM_GRIPPERS))
+    data = (h, x_dict, e_dict, ei_dict, ampn_channels(num_components, NUM_GRIPPERS))
     levels = [
         dict(
             level=k,

@@ -1,7 +1,7 @@
 """The peers' own networks behind AMPN's interface: NVIDIA PhysicsNeMo's MeshGraphNets.
 
 ``benchmarks/compare.py``'s ``physicsnemo_*`` variants train and test these in place of the AMPN
-(``model.network_class``, see :class:`~torch_ampn.nn.AMPNSurrogate`), on the same data, features,
+(``model.network_class``, see :class:`~torch_ampn.forming.AMPNSurrogate`), on the same data, features,
 normalisation, noise, pushforward, step budget and (plain-path) rollout. The peer's model class is
 imported from the peer's package and used unmodified; an adapter only translates AMPN's inputs
 (``x_dict``, ``edge_index_dict``, ``edge_attr_dict`` of :meth:`torch_ampn.nn.AMPN.forward`) into
@@ -39,8 +39,8 @@ from torch import Tensor, nn
 
 from torch_ampn.data.hierarchical_data import edge_type
 
-MESH_EDGE_CHANNELS = 8  # torch_ampn.nn.features.EDGE_FEATURES_WITH_INITIAL
-CONTACT_EDGE_CHANNELS = 4  # torch_ampn.nn.features.EDGE_FEATURES_CURRENT
+MESH_EDGE_CHANNELS = 8  # torch_ampn.forming.features.EDGE_FEATURES_WITH_INITIAL
+CONTACT_EDGE_CHANNELS = 4  # torch_ampn.forming.features.EDGE_FEATURES_CURRENT
 _TIMM_MODULES = (
     "timm",
     "timm.layers",

@@ -45,7 +45,7 @@ import torch
 import yaml
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.nn import AMPNSurrogate
+from torch_ampn.forming import AMPNSurrogate
 from torch_ampn.rollout import rollout
 from torch_ampn.rollout.fast import FastRollout
 from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch

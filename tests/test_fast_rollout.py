@@ -8,7 +8,8 @@ import torch
 from helpers import eager_fast_rollout
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.nn import AMPNSurrogate, InterLevelConv, IntraLevelConv, SlottedEdgeIndex, incoming_slots
+from torch_ampn.forming import AMPNSurrogate
+from torch_ampn.nn import InterLevelConv, IntraLevelConv, SlottedEdgeIndex, incoming_slots
 from torch_ampn.rollout import rollout
 from torch_ampn.rollout.fast import FastRollout, cached_fast_rollout
 from torch_ampn.testing import contact_edges_brute_force, random_edge_index, small_trajectory

@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from torch_ampn.data import HierarchyCache, step_sample
-from torch_ampn.nn import AMPNSurrogate
-from torch_ampn.nn.features import hierarchical_features
-from torch_ampn.nn.surrogate import import_network_class
+from torch_ampn.forming import AMPNSurrogate
+from torch_ampn.forming.features import hierarchical_features
+from torch_ampn.forming.surrogate import import_network_class
 from torch_ampn.rollout import rollout
 from torch_ampn.rollout.fast import fast_path_supported
 

@@ -6,11 +6,13 @@ import pytest
 import torch
 from torch_geometric.data import Batch
 
-from torch_ampn.nn import AMPN, hierarchical_features, num_fine_node_features
+from torch_ampn.forming import ampn_channels, hierarchical_features
+from torch_ampn.nn import AMPN
 from torch_ampn.testing import count_parameters, toy_hierarchy
 
 C, G = 3, 2  # components and grippers of the toy hierarchy
-F0 = num_fine_node_features(C, G)
+SIZES = ampn_channels(C, G)  # fine, coarse and edge input widths
+F0 = SIZES["fine_in_channels"]
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +35,7 @@ def toy3():
 def make(num_levels=3, d=16, **kwargs):
     torch.manual_seed(0)
     kwargs.setdefault("noise_channels", 3)
-    return AMPN(F0, hidden_channels=d, num_levels=num_levels, **kwargs)
+    return AMPN(**SIZES, hidden_channels=d, num_levels=num_levels, **kwargs)
 
 
 def noise_for(h, seed=0):
@@ -61,7 +63,7 @@ def test_output_shape_and_defaults(toy):
     assert model.num_layers == 15
     out = model(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h))
     assert out.shape == (h["l0"].num_nodes, 3) and torch.isfinite(out).all()
-    paper = AMPN(F0)
+    paper = AMPN(**SIZES)
     assert (paper.hidden_channels, paper.mlp_channels, paper.num_levels, paper.aggr) == (128, 128, 4, "max")
     assert paper.noise_channels == 0
     assert paper.pre[0].mlp_channels == 128 and paper.num_layers == 15
@@ -135,7 +137,7 @@ def test_state_dict_round_trip_gives_identical_outputs(toy):
     torch.save(model.state_dict(), buf)
     buf.seek(0)
     torch.manual_seed(123)
-    other = AMPN(F0, hidden_channels=16, num_levels=4, noise_channels=3).eval()
+    other = AMPN(**SIZES, hidden_channels=16, num_levels=4, noise_channels=3).eval()
     other.load_state_dict(torch.load(buf, weights_only=True))
     noise = noise_for(h)
     a = model(x_dict, h.edge_index_dict, e_dict, noise=noise)
@@ -146,7 +148,7 @@ def test_state_dict_round_trip_gives_identical_outputs(toy):
 def test_no_noise_input_by_default_and_a_declared_one_must_be_given(toy):
     h, x_dict, e_dict = toy
     torch.manual_seed(0)
-    plain = AMPN(F0, hidden_channels=16, num_levels=3).eval()
+    plain = AMPN(**SIZES, hidden_channels=16, num_levels=3).eval()
     a = plain(x_dict, h.edge_index_dict, e_dict)
     assert torch.isfinite(a).all() and torch.equal(a, plain(x_dict, h.edge_index_dict, e_dict))
     assert plain.node_encoders["fine"].in_features == F0 + 8  # features + level encoding, no noise
@@ -237,13 +239,13 @@ def test_aggregation_object_is_copied_into_every_layer(toy):
 
     h, x_dict, e_dict = toy
     torch.manual_seed(0)
-    by_name = AMPN(F0, hidden_channels=8, num_levels=3)
+    by_name = AMPN(**SIZES, hidden_channels=8, num_levels=3)
     torch.manual_seed(0)
-    by_object = AMPN(F0, hidden_channels=8, num_levels=3, aggr=MaxAggregation())
+    by_object = AMPN(**SIZES, hidden_channels=8, num_levels=3, aggr=MaxAggregation())
     assert by_object.state_dict().keys() == by_name.state_dict().keys()
     args = (x_dict, h.edge_index_dict, e_dict)
     assert torch.equal(by_name(*args), by_object(*args))
-    learnable = AMPN(F0, hidden_channels=8, num_levels=3, aggr=SoftmaxAggregation(learn=True))
+    learnable = AMPN(**SIZES, hidden_channels=8, num_levels=3, aggr=SoftmaxAggregation(learn=True))
     modules = [conv.aggr_module for stack in (learnable.pre, learnable.down, learnable.solve,
                                                 learnable.post, learnable.up) for conv in stack]  # fmt: skip
     assert len({id(m) for m in modules}) == learnable.num_layers == 15

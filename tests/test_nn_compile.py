@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from torch_ampn.nn import AMPN, InterLevelConv, IntraLevelConv, hierarchical_features, num_fine_node_features
+from torch_ampn.forming import ampn_channels, hierarchical_features
+from torch_ampn.nn import AMPN, InterLevelConv, IntraLevelConv
 from torch_ampn.testing import random_inter_level_inputs, random_intra_level_inputs, toy_hierarchy
 
 
@@ -46,8 +47,9 @@ def test_inter_level_conv_has_no_graph_breaks():
 
 def test_ampn_has_no_graph_breaks(toy):
     h, x_dict, e_dict, masks = toy
-    fine_in = num_fine_node_features(3, 2)
-    model = AMPN(fine_in, hidden_channels=16, num_levels=3, num_step_frequencies=2, noise_channels=3)
+    model = AMPN(
+        **ampn_channels(3, 2), hidden_channels=16, num_levels=3, num_step_frequencies=2, noise_channels=3
+    )
     noise = torch.randn(h["l0"].num_nodes, 3)
     explanation = torch._dynamo.explain(model)(
         x_dict, h.edge_index_dict, e_dict, noise=noise, step=torch.tensor(1), contact_mask_dict=masks
@@ -98,7 +100,7 @@ def test_compiled_ampn_matches_eager(toy):
     h, x_dict, e_dict, masks = toy
     torch.manual_seed(0)
     layers = dict(pre_layers=0, down_layers=1, solve_layers=1, post_layers=0, up_layers=1)
-    model = AMPN(num_fine_node_features(3, 2), hidden_channels=16, num_levels=2, noise_channels=3, **layers)
+    model = AMPN(**ampn_channels(3, 2), hidden_channels=16, num_levels=2, noise_channels=3, **layers)
     noise = torch.randn(h["l0"].num_nodes, 3)
     with torch.no_grad():
         expected = model(x_dict, h.edge_index_dict, e_dict, noise=noise, contact_mask_dict=masks)

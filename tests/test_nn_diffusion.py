@@ -7,14 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torch_ampn.nn import (
-    AMPN,
-    DiffusionAMPN,
-    geometric_beta_schedule,
-    hierarchical_features,
-    num_fine_node_features,
-    pointwise_loss,
-)
+from torch_ampn.forming import ampn_channels, hierarchical_features
+from torch_ampn.nn import AMPN, DiffusionAMPN, geometric_beta_schedule, pointwise_loss
 from torch_ampn.testing import toy_hierarchy
 
 C, G = 3, 2
@@ -31,7 +25,7 @@ def toy():
 def make(step_frequencies=0, max_step=20):
     torch.manual_seed(0)
     return AMPN(
-        num_fine_node_features(C, G),
+        **ampn_channels(C, G),
         hidden_channels=16,
         num_levels=3,
         num_step_frequencies=step_frequencies,

@@ -6,7 +6,7 @@ import torch
 from torch_geometric.data import Batch
 
 from torch_ampn.data import NodeType
-from torch_ampn.nn import (
+from torch_ampn.forming import (
     coarse_node_features,
     edge_features,
     fine_node_features,

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from torch_ampn.nn import FourierLevelEncoding, LayerNormMLP, Normalizer
+from torch_ampn.forming import Normalizer
+from torch_ampn.nn import FourierLevelEncoding, LayerNormMLP
 
 
 def test_mlp_is_layernorm_linear_silu_linear():

@@ -81,7 +81,7 @@ def test_gradient_of_coarse_term_is_the_restricted_error():
 
 
 def test_surrogate_rejects_bad_coarse_loss_weight():
-    from torch_ampn.nn import AMPNSurrogate
+    from torch_ampn.forming import AMPNSurrogate
 
     with pytest.raises(ValueError, match="coarse_loss_weight"):
         AMPNSurrogate(coarse_loss_weight=-1.0)

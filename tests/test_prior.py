@@ -8,8 +8,8 @@ import torch
 from torch_ampn.baselines.prior import fitted_prior, make_prior, out_of_fold_priors
 from torch_ampn.data import HierarchyCache, step_sample
 from torch_ampn.data.node_type import NodeType
-from torch_ampn.nn import AMPNSurrogate
-from torch_ampn.nn.features import num_fine_node_features, prior_features
+from torch_ampn.forming import AMPNSurrogate
+from torch_ampn.forming.features import num_fine_node_features, prior_features
 from torch_ampn.testing import small_trajectory
 
 TEMPLATE = small_trajectory(steps=3)

@@ -8,7 +8,7 @@ from torch_geometric.data import Batch
 
 from torch_ampn.cli import data as data_cli
 from torch_ampn.data import HierarchyCache, NodeType, Trajectory, step_sample
-from torch_ampn.nn import AMPNSurrogate, component_features
+from torch_ampn.forming import AMPNSurrogate, component_features
 from torch_ampn.sim import (
     PartFamily,
     StampFormingConfig,

@@ -671,7 +671,8 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(data_dir, monkeypatc
 def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network():
     import inspect
 
-    from torch_ampn.nn import AMPN, AMPNSurrogate
+    from torch_ampn.forming import AMPNSurrogate
+    from torch_ampn.nn import AMPN
     from torch_ampn.training.module import SURROGATE_ARGUMENTS
 
     module = inspect.signature(AMPNLightningModule).parameters

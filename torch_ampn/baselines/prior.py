@@ -1,8 +1,8 @@
 """Priors: a setting-aware baseline's trajectory as an input of a learned surrogate.
 
-A model with ``prior_features`` (:class:`~torch_ampn.nn.AMPNSurrogate`) reads, at every step,
+A model with ``prior_features`` (:class:`~torch_ampn.forming.AMPNSurrogate`) reads, at every step,
 where a prior prediction of the whole trajectory puts each node
-(:func:`~torch_ampn.nn.features.prior_features`) and learns to correct it. The prior is one of
+(:func:`~torch_ampn.forming.features.prior_features`) and learns to correct it. The prior is one of
 :mod:`torch_ampn.baselines.settings`, by default POD + GP.
 
 A prior must be as good on the training trajectories as it will be on unseen settings, or the

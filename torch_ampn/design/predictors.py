@@ -3,7 +3,7 @@
 Each returns a :data:`~torch_ampn.design.search.Predictor`: a function of setting trajectories
 (:func:`~torch_ampn.design.search.settings_trajectories`) to their rollouts ``[T + 1, N, 3]``.
 
-* :func:`surrogate_predictor`: a trained :class:`~torch_ampn.nn.AMPNSurrogate`, batched on the
+* :func:`surrogate_predictor`: a trained :class:`~torch_ampn.forming.AMPNSurrogate`, batched on the
   fast path where it applies, with its prior (a fitted baseline) where it has one.
 * :func:`baseline_predictor`: a fitted setting-aware baseline (e.g. POD + GP).
 * :func:`simulator_predictor`: the embedded simulator, the reference a choice is checked against.
@@ -82,7 +82,7 @@ def surrogate_predictor(
     """A trained surrogate rolled out over each setting (its noise seeded ``seed`` for every setting).
 
     Args:
-        surrogate: The :class:`~torch_ampn.nn.AMPNSurrogate`.
+        surrogate: The :class:`~torch_ampn.forming.AMPNSurrogate`.
         hierarchy: Its mesh's hierarchy.
         prior: The fitted baseline a surrogate with ``prior_features`` reads
             (``AMPNDataModule.prior_baseline()``); required for such a surrogate.

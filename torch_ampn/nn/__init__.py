@@ -1,51 +1,59 @@
-"""Neural network layers and models: IntraLevelConv, InterLevelConv, AMPN and its ROBIN (diffusion) mode."""
+"""Layers any PyG user can reuse: IntraLevelConv, InterLevelConv, AMPN, its ROBIN (diffusion) mode.
+
+Nothing here knows about stamp forming: the forming surrogate (its features, normalisers and
+the next-step predictor) is :mod:`torch_ampn.forming`.
+"""
+
+import warnings
 
 from torch_ampn.nn.ampn import AMPN
 from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule, pointwise_loss
 from torch_ampn.nn.encoding import FourierLevelEncoding
-from torch_ampn.nn.features import (
-    coarse_node_features,
-    component_features,
-    edge_features,
-    fine_node_features,
-    gripper_features,
-    hierarchical_features,
-    node_type_one_hot,
-    num_coarse_node_features,
-    num_edge_features,
-    num_fine_node_features,
-)
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.mlp import LayerNormMLP
 from torch_ampn.nn.multilevel_loss import multilevel_mse, restrict_mean
-from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.nn.slots import SlottedEdgeIndex, incoming_slots
-from torch_ampn.nn.surrogate import AMPNSurrogate
 
 __all__ = [
     "AMPN",
-    "AMPNSurrogate",
     "DiffusionAMPN",
     "FourierLevelEncoding",
     "InterLevelConv",
     "IntraLevelConv",
     "LayerNormMLP",
-    "Normalizer",
     "SlottedEdgeIndex",
-    "coarse_node_features",
-    "component_features",
-    "edge_features",
-    "fine_node_features",
     "geometric_beta_schedule",
-    "gripper_features",
-    "hierarchical_features",
     "incoming_slots",
     "multilevel_mse",
-    "node_type_one_hot",
-    "num_coarse_node_features",
-    "num_edge_features",
-    "num_fine_node_features",
     "pointwise_loss",
     "restrict_mean",
 ]
+
+#: Names that moved to :mod:`torch_ampn.forming` (still importable from here, with a warning).
+_MOVED = frozenset(
+    {
+        "AMPNSurrogate",
+        "Normalizer",
+        "coarse_node_features",
+        "component_features",
+        "edge_features",
+        "fine_node_features",
+        "gripper_features",
+        "hierarchical_features",
+        "node_type_one_hot",
+        "num_coarse_node_features",
+        "num_edge_features",
+        "num_fine_node_features",
+    }
+)
+
+
+def __getattr__(name: str):
+    """The forming names that used to live here, from :mod:`torch_ampn.forming`, with a FutureWarning."""
+    if name in _MOVED:
+        import torch_ampn.forming
+
+        warnings.warn(f"torch_ampn.nn.{name} moved to torch_ampn.forming.{name}", FutureWarning, stacklevel=2)
+        return getattr(torch_ampn.forming, name)
+    raise AttributeError(f"module 'torch_ampn.nn' has no attribute {name!r}")

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
 from torch_geometric.nn.aggr import Aggregation
 
 from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
-from torch_ampn.data.node_type import NodeType
 from torch_ampn.nn._conv import check_aggr
 from torch_ampn.nn.encoding import FourierLevelEncoding
-from torch_ampn.nn.features import EDGE_FEATURES_CURRENT, EDGE_FEATURES_WITH_INITIAL
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.slots import split_edges
@@ -52,9 +51,12 @@ class AMPN(nn.Module):
     with a validity mask give static shapes.
 
     Args:
-        fine_in_channels: Node features of ``l0`` (see
-            :func:`~torch_ampn.nn.num_fine_node_features`), without the noise input.
-        coarse_in_channels: Node features of coarse levels (default: node-type one-hot).
+        fine_in_channels: Node features of ``l0``, without the noise input.
+        coarse_in_channels: Node features of coarse levels.
+        edge_channels: Input features of every edge relation: one number for all, or one
+            per relation ``{"mesh": ..., "contact": ..., "down": ..., "up": ...}`` (down and
+            up only with ``num_levels > 1``). The forming surrogate's sizes are
+            :func:`torch_ampn.forming.ampn_channels`.
         out_channels: Size of the prediction per ``l0`` node (3: the residual).
         hidden_channels: Latent size :math:`d` of node and edge embeddings.
         num_levels: Levels used, ``L + 1`` (paper: 4); ``1`` is the flat baseline. The
@@ -76,16 +78,13 @@ class AMPN(nn.Module):
         num_step_frequencies: Frequencies of the diffusion-step encoding; ``0`` (default)
             for a model without step conditioning (AMPN, ``K = 1``).
         max_step: Largest diffusion-step index the step encoding separates.
-        mesh_edge_channels: Input features of mesh edges.
-        contact_edge_channels: Input features of contact edges.
-        down_edge_channels: Input features of down edges.
-        up_edge_channels: Input features of up edges.
     """
 
     def __init__(
         self,
         fine_in_channels: int,
-        coarse_in_channels: int = NodeType.count(),
+        coarse_in_channels: int,
+        edge_channels: int | Mapping[str, int],
         out_channels: int = 3,
         hidden_channels: int = 128,
         num_levels: int = 4,
@@ -100,10 +99,6 @@ class AMPN(nn.Module):
         num_level_frequencies: int = 4,
         num_step_frequencies: int = 0,
         max_step: int = 20,
-        mesh_edge_channels: int = EDGE_FEATURES_WITH_INITIAL,
-        contact_edge_channels: int = EDGE_FEATURES_CURRENT,
-        down_edge_channels: int = EDGE_FEATURES_WITH_INITIAL,
-        up_edge_channels: int = EDGE_FEATURES_WITH_INITIAL,
     ) -> None:
         super().__init__()
         if num_levels < 1:
@@ -134,13 +129,12 @@ class AMPN(nn.Module):
 
         fine_in = fine_in_channels + self.noise_channels + cond
         self.node_encoders = nn.ModuleDict({"fine": nn.Linear(fine_in, d)})
-        self.edge_encoders = nn.ModuleDict(
-            {MESH: nn.Linear(mesh_edge_channels, d), CONTACT: nn.Linear(contact_edge_channels, d)}
-        )
-        if hierarchical:
+        widths = _edge_channels(edge_channels, (MESH, CONTACT, DOWN, UP) if hierarchical else (MESH, CONTACT))
+        self.edge_encoders = nn.ModuleDict({rel: nn.Linear(widths[rel], d) for rel in (MESH, CONTACT)})
+        if hierarchical:  # (created in this order, which the initialisation's random draws follow)
             self.node_encoders["coarse"] = nn.Linear(coarse_in_channels + cond, d)
-            self.edge_encoders[DOWN] = nn.Linear(down_edge_channels, d)
-            self.edge_encoders[UP] = nn.Linear(up_edge_channels, d)
+            self.edge_encoders[DOWN] = nn.Linear(widths[DOWN], d)
+            self.edge_encoders[UP] = nn.Linear(widths[UP], d)
 
         def stack(conv: type[IntraLevelConv | InterLevelConv], n: int) -> nn.ModuleList:
             return nn.ModuleList(conv(d, h, copy.deepcopy(aggr)) for _ in range(n))
@@ -194,7 +188,7 @@ class AMPN(nn.Module):
 
         Inputs are keyed like a :class:`~torch_ampn.data.HierarchicalData`
         (``data.edge_index_dict``, ``data.batch_dict``); build the features with
-        :func:`~torch_ampn.nn.hierarchical_features` and normalise them.
+        :func:`~torch_ampn.forming.hierarchical_features` and normalise them.
 
         Args:
             x_dict: Node features ``{"lk": [N_k, F_k]}`` for ``k < num_levels``
@@ -298,3 +292,13 @@ class AMPN(nn.Module):
             f"mlp_channels={self.mlp_channels}, noise_channels={self.noise_channels}, "
             f"num_levels={self.num_levels}, aggr={self.aggr!r}"
         )
+
+
+def _edge_channels(edge_channels: int | Mapping[str, int], relations: tuple[str, ...]) -> dict[str, int]:
+    """``{relation: input width}`` from one width for all or a mapping; one-line error for a missing one."""
+    if isinstance(edge_channels, int):
+        return dict.fromkeys(relations, edge_channels)
+    missing = [rel for rel in relations if rel not in edge_channels]
+    if missing:
+        raise ValueError(f"edge_channels: no width for {missing} (needs {list(relations)})")
+    return {rel: int(edge_channels[rel]) for rel in relations}

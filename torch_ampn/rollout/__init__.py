@@ -2,7 +2,7 @@
 
 :mod:`~torch_ampn.rollout.plain` rolls out any predictor window by window
 (:func:`rollout`) and holds the error metric (:func:`rollout_rmse`);
-:mod:`~torch_ampn.rollout.fast` rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out with static
+:mod:`~torch_ampn.rollout.fast` rolls an :class:`~torch_ampn.forming.AMPNSurrogate` out with static
 shapes, compiled and batched over process settings (:class:`FastRollout`, :func:`rollout_settings`);
 :func:`rollout_surrogate` (:mod:`~torch_ampn.rollout.surrogate`) is the one place that chooses
 between them for a surrogate.

@@ -1,4 +1,4 @@
-r"""A fast rollout of an :class:`~torch_ampn.nn.AMPNSurrogate`: static shapes, compiled, batched.
+r"""A fast rollout of an :class:`~torch_ampn.forming.AMPNSurrogate`: static shapes, compiled, batched.
 
 :func:`~torch_ampn.rollout.rollout` rebuilds a :class:`~torch_ampn.data.HierarchicalData` window,
 searches the contact edges and builds the features with many small eager operations every
@@ -35,9 +35,9 @@ from torch import Tensor
 from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory, gripper_forces, gripper_points
-from torch_ampn.nn.features import prior_features, step_features
+from torch_ampn.forming.features import prior_features, step_features
+from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.nn.slots import SlottedEdgeIndex
-from torch_ampn.nn.surrogate import AMPNSurrogate
 from torch_ampn.rollout.plain import next_positions
 from torch_ampn.transforms.candidates import (
     CandidateState,
@@ -151,7 +151,7 @@ def _cpp_wrapper_from_environment() -> bool | None:
 
 
 class FastRollout:
-    r"""Rolls an :class:`~torch_ampn.nn.AMPNSurrogate` out over ``B`` settings of one mesh at once.
+    r"""Rolls an :class:`~torch_ampn.forming.AMPNSurrogate` out over ``B`` settings of one mesh at once.
 
     Build it once per (surrogate, mesh, batch size); call it for every batch of trajectories
     of that mesh (compiled code is reused).
@@ -339,8 +339,8 @@ class FastRollout:
     ) -> tuple[dict, dict, dict, dict, Tensor, Tensor]:
         """A step's normalised features, edges (with slot tables), contact masks, previous residual, exact.
 
-        The features are :func:`~torch_ampn.nn.features.step_features` normalised by
-        :meth:`AMPNSurrogate.normalize <torch_ampn.nn.AMPNSurrogate.normalize>`, as on the plain
+        The features are :func:`~torch_ampn.forming.features.step_features` normalised by
+        :meth:`AMPNSurrogate.normalize <torch_ampn.forming.AMPNSurrogate.normalize>`, as on the plain
         path; what is this path's own is the contact tables' fixed shapes. The previous
         displacement is ``[B N, 3]``; the exactness flags (one per level) say whether the
         level's selected contact table is guaranteed exact. ``pos`` and ``prev`` are the

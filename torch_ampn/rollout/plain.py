@@ -7,7 +7,7 @@ rebuild the contact edges on every level from those positions, predict the resid
 Tool nodes follow their prescribed motion (the trajectory's tool positions) exactly.
 
 The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in mm of every
-``l0`` node): :meth:`~torch_ampn.nn.AMPNSurrogate.predict_residual` or a baseline of
+``l0`` node): :meth:`~torch_ampn.forming.AMPNSurrogate.predict_residual` or a baseline of
 :mod:`torch_ampn.baselines`.
 """
 
@@ -56,7 +56,7 @@ def rollout(
         device: Where to run (default: the hierarchy's device).
         progress: Show a progress bar.
         fast: Use the static-shape path (:class:`~torch_ampn.rollout.fast.FastRollout`):
-            ``predictor`` must then be an :class:`~torch_ampn.nn.AMPNSurrogate` (its own contact
+            ``predictor`` must then be an :class:`~torch_ampn.forming.AMPNSurrogate` (its own contact
             settings are used; ``contact`` is ignored) and the noise comes from ``generator``.
             Same result up to floating-point summation order. Where the surrogate's settings
             have no fast path (plain-radius contact) it warns and takes the plain path.
@@ -70,7 +70,7 @@ def rollout(
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if fast:
-        from torch_ampn.nn.surrogate import AMPNSurrogate
+        from torch_ampn.forming.surrogate import AMPNSurrogate
         from torch_ampn.rollout.surrogate import rollout_surrogate
 
         if not isinstance(predictor, AMPNSurrogate):

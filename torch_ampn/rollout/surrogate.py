@@ -1,4 +1,4 @@
-"""Rolling out an :class:`~torch_ampn.nn.AMPNSurrogate`: the one place that chooses the path.
+"""Rolling out an :class:`~torch_ampn.forming.AMPNSurrogate`: the one place that chooses the path.
 
 The fast path (:class:`~torch_ampn.rollout.FastRollout`: static shapes, compiled, batched over
 settings) where the surrogate's settings have one, else the plain path
@@ -17,7 +17,7 @@ from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
-from torch_ampn.nn.surrogate import AMPNSurrogate
+from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
 from torch_ampn.rollout.plain import rollout
 

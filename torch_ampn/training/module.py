@@ -16,7 +16,7 @@ from torch import Tensor
 from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
 from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
-from torch_ampn.nn.surrogate import AMPNSurrogate
+from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse, rollout_surrogate
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
@@ -65,7 +65,7 @@ SURROGATE_ARGUMENTS = (
 
 
 class AMPNLightningModule(L.LightningModule):
-    r"""Trains an :class:`~torch_ampn.nn.AMPNSurrogate` with the seed paper's recipe.
+    r"""Trains an :class:`~torch_ampn.forming.AMPNSurrogate` with the seed paper's recipe.
 
     * **fit**: MSE on the normalised next-step residual of ply nodes (ROBIN mode with
       ``diffusion_steps > 1``: the v-prediction loss at a random diffusion step); Adam;
@@ -86,7 +86,7 @@ class AMPNLightningModule(L.LightningModule):
     * **predict**: rollouts of new process settings without ground truth (XDMF + PNG).
 
     The first arguments, :data:`SURROGATE_ARGUMENTS`, build the
-    :class:`~torch_ampn.nn.AMPNSurrogate` and its :class:`~torch_ampn.nn.AMPN` (documented
+    :class:`~torch_ampn.forming.AMPNSurrogate` and its :class:`~torch_ampn.nn.AMPN` (documented
     there; the defaults are the paper's). They are flat arguments of the module so that configs
     read ``model.num_levels``, the command line takes ``--model.diffusion_steps 5``, the CLI
     links the contact settings into the data module, and checkpoints hold plain values.
@@ -96,13 +96,13 @@ class AMPNLightningModule(L.LightningModule):
             ``component_encoding: stack``, the most of any part of a family.
         component_encoding: ``"onehot"`` (the paper's component one-hot, one part) or
             ``"stack"`` (plies below and above a ply node: the same on parts of any ply count;
-            :func:`~torch_ampn.nn.features.component_features`).
+            :func:`~torch_ampn.forming.features.component_features`).
         num_grippers: Grippers (2 for the default dataset).
         prior_features: Take a prior trajectory (the data module's ``prior``, e.g. POD + GP) as
-            input and learn its correction (:func:`~torch_ampn.nn.features.prior_features`);
+            input and learn its correction (:func:`~torch_ampn.forming.features.prior_features`);
             rollouts then take the plain path.
         network_class: Another network in place of the AMPN (``"package.module:Class"``, e.g. a
-            peer's model behind an adapter; see :class:`~torch_ampn.nn.AMPNSurrogate`); the AMPN's
+            peer's model behind an adapter; see :class:`~torch_ampn.forming.AMPNSurrogate`); the AMPN's
             layer arguments below are then unused, and rollouts take the plain path.
         network_options: Keyword arguments of ``network_class``.
         hidden_channels: Latent size d (paper: 128).

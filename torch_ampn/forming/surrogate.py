@@ -10,16 +10,16 @@ import torch
 from torch import Tensor, nn
 
 from torch_ampn.data.hierarchical_data import RELATIONS, HierarchicalData, level_name
-from torch_ampn.nn.ampn import AMPN, EdgeType
-from torch_ampn.nn.diffusion import DiffusionAMPN
-from torch_ampn.nn.features import (
+from torch_ampn.forming.features import (
+    ampn_channels,
     hierarchical_features,
     num_coarse_node_features,
     num_edge_features,
-    num_fine_node_features,
 )
+from torch_ampn.forming.normalizer import Normalizer
+from torch_ampn.nn.ampn import AMPN, EdgeType
+from torch_ampn.nn.diffusion import DiffusionAMPN
 from torch_ampn.nn.multilevel_loss import multilevel_mse
-from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 
 
@@ -28,7 +28,7 @@ class AMPNSurrogate(nn.Module):
 
     It owns everything a checkpoint needs to roll out a trajectory: the network (an
     :class:`~torch_ampn.nn.AMPN` wrapped in :class:`~torch_ampn.nn.DiffusionAMPN`; ``K = 1`` is plain
-    AMPN), the :class:`~torch_ampn.nn.Normalizer` of every input kind and of the target (statistics from
+    AMPN), the :class:`~torch_ampn.forming.Normalizer` of every input kind and of the target (statistics from
     training data, saved in the state dict) and the contact-edge settings
     (:attr:`contact`, a :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
 
@@ -64,10 +64,10 @@ class AMPNSurrogate(nn.Module):
             (:func:`~torch_ampn.nn.multilevel_mse`): the squared errors of the residual error
             restricted to every coarse level are added with this weight; 0 (the paper): plain MSE.
         component_encoding: How a node's component enters its features
-            (:func:`~torch_ampn.nn.features.component_features`): ``"onehot"`` (the paper's, one
+            (:func:`~torch_ampn.forming.features.component_features`): ``"onehot"`` (the paper's, one
             part) or ``"stack"`` (a ply's place in its stack: the same on parts of any ply count).
         prior_features: Take a prior prediction of the trajectory as input
-            (:func:`~torch_ampn.nn.features.prior_features`: 6 more fine-node columns), so that
+            (:func:`~torch_ampn.forming.features.prior_features`: 6 more fine-node columns), so that
             the network learns a correction of the prior; the windows must then carry it
             (:attr:`~torch_ampn.data.Trajectory.prior`; rollouts read it from there too).
         network_class: Another network in place of the AMPN, as ``"package.module:Class"`` (e.g.
@@ -136,9 +136,10 @@ class AMPNSurrogate(nn.Module):
             mode=contact_mode,
             positions=contact_positions,
         )
-        fine_in = num_fine_node_features(
+        sizes = ampn_channels(
             num_components, num_grippers, component_encoding=component_encoding, prior=self.prior_features
         )
+        fine_in = sizes["fine_in_channels"]
         self.network_class = network_class
         common = {
             "num_levels": num_levels,
@@ -147,7 +148,7 @@ class AMPNSurrogate(nn.Module):
             "max_step": max(diffusion_steps - 1, 1),
         }
         if network_class is None:
-            model = AMPN(fine_in, **common, **network)
+            model = AMPN(**sizes, **common, **network)
         else:
             model = import_network_class(network_class)(fine_in, **common, **(network_options or {}))
         self.diffusion = DiffusionAMPN(model, diffusion_steps)
@@ -222,7 +223,7 @@ class AMPNSurrogate(nn.Module):
     def normalize(
         self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor]
     ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
-        """Normalised node and edge features (of :func:`~torch_ampn.nn.features.step_features`), same keys."""
+        """Normalised node and edge features (of :func:`~torch_ampn.forming.step_features`), same keys."""
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         return x_dict, {key: self.edge_norm[key[1]](e) for key, e in edge_attr_dict.items()}
 

@@ -21,12 +21,13 @@ Feature layout (columns, in this order):
   target and ``j`` the source of the edge.
 
 The level encoding is added inside the model, and normalisation is a separate step
-(:class:`~torch_ampn.nn.Normalizer`).
+(:class:`~torch_ampn.forming.Normalizer`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +37,7 @@ from torch_ampn.data.hierarchical_data import (
     CONTACT,
     DOWN,
     MESH,
+    RELATIONS,
     UP,
     EdgeType,
     HierarchicalData,
@@ -460,3 +462,20 @@ def hierarchical_features(
         component_encoding=component_encoding,
         prior=prior_columns,
     )
+
+
+def ampn_channels(
+    num_components: int, num_grippers: int, component_encoding: str = "onehot", prior: bool = False
+) -> dict[str, Any]:
+    """The input sizes an :class:`~torch_ampn.nn.AMPN` needs for these features: ``AMPN(**sizes, ...)``.
+
+    Returns:
+        ``{"fine_in_channels": ..., "coarse_in_channels": ..., "edge_channels": {relation: ...}}``.
+    """
+    return {
+        "fine_in_channels": num_fine_node_features(
+            num_components, num_grippers, component_encoding=component_encoding, prior=prior
+        ),
+        "coarse_in_channels": num_coarse_node_features(),
+        "edge_channels": {rel: num_edge_features(rel) for rel in RELATIONS},
+    }

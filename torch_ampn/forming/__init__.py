@@ -1,0 +1,44 @@
+"""The stamp-forming surrogate: its input features, normalisers and the next-step predictor.
+
+Built on the generic layers of :mod:`torch_ampn.nn`: :class:`AMPNSurrogate` turns a window of
+a forming trajectory (:class:`~torch_ampn.data.HierarchicalData`) into the paper's features
+(:mod:`torch_ampn.forming.features`), normalises them (:class:`Normalizer`) and predicts the
+next ply displacements with an :class:`~torch_ampn.nn.AMPN`. :func:`ampn_channels` gives the
+sizes an AMPN needs for these features.
+"""
+
+from torch_ampn.forming.features import (
+    ampn_channels,
+    coarse_node_features,
+    component_features,
+    edge_features,
+    fine_node_features,
+    gripper_features,
+    hierarchical_features,
+    node_type_one_hot,
+    num_coarse_node_features,
+    num_edge_features,
+    num_fine_node_features,
+    prior_features,
+    step_features,
+)
+from torch_ampn.forming.normalizer import Normalizer
+from torch_ampn.forming.surrogate import AMPNSurrogate
+
+__all__ = [
+    "AMPNSurrogate",
+    "Normalizer",
+    "ampn_channels",
+    "coarse_node_features",
+    "component_features",
+    "edge_features",
+    "fine_node_features",
+    "gripper_features",
+    "hierarchical_features",
+    "node_type_one_hot",
+    "num_coarse_node_features",
+    "num_edge_features",
+    "num_fine_node_features",
+    "prior_features",
+    "step_features",
+]
