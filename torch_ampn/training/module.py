@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import os
 import time
 from pathlib import Path
@@ -10,16 +9,17 @@ from typing import Any
 
 import lightning as L
 import torch
-from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
-from torch_ampn.data.dataset import set_window
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout, rollout_rmse, rollout_surrogate
+from torch_ampn.training.compiled_loss import CompiledLoss
+from torch_ampn.training.inputs import add_training_noise, pushforward_inputs
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
+from torch_ampn.training.rng import restore_rng_states, rng_states
 from torch_ampn.training.schedule import WarmupExponentialDecay
 
 
@@ -214,10 +214,8 @@ class AMPNLightningModule(L.LightningModule):
         self.save_hyperparameters()
         self.surrogate = AMPNSurrogate(**{name: self.hparams[name] for name in SURROGATE_ARGUMENTS})
         self._report: TestReport | None = None
-        # torch.compile wrapper of the network, built at the first training step; kept out of the
-        # module tree (plain attribute) so that state_dict keys and weight averaging do not see it.
-        # None: not built yet; False: eager (compile off or failed).
-        object.__setattr__(self, "_compiled_network", None if compile_network else False)
+        # the loss, through the network compiled at the first training step (kept out of the module tree)
+        object.__setattr__(self, "_loss", CompiledLoss(self.surrogate, enabled=compile_network))
         # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
         self._training_meshes: dict[str, int] | None = None
 
@@ -242,21 +240,15 @@ class AMPNLightningModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the random number generators' states, so that a resumed fit draws what it would have."""
-        checkpoint["rng_states"] = {"torch": torch.get_rng_state()}
+        checkpoint["rng_states"] = rng_states()
         if self._training_meshes is not None:
             checkpoint["training_meshes"] = dict(self._training_meshes)
-        if torch.cuda.is_available() and torch.cuda.is_initialized():
-            checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
     def on_train_start(self) -> None:
         """Restore the random generators' states of a resumed fit (see :meth:`on_load_checkpoint`)."""
         states = getattr(self, "_rng_states_to_restore", None) or {}
         object.__setattr__(self, "_rng_states_to_restore", None)
-        if "torch" in states:
-            torch.set_rng_state(states["torch"])
-        cuda = torch.cuda.is_available() and len(states.get("cuda", ())) == torch.cuda.device_count()
-        if "cuda" in states and cuda:
-            torch.cuda.set_rng_state_all(states["cuda"])
+        restore_rng_states(states)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Keep the generators' states for :meth:`on_train_start`; rebuild the surrogate of old checkpoints.
@@ -277,6 +269,7 @@ class AMPNLightningModule(L.LightningModule):
         device = next(self.surrogate.parameters()).device
         arguments = {name: self.hparams[name] for name in SURROGATE_ARGUMENTS}
         self.surrogate = AMPNSurrogate(**arguments).to(device)
+        object.__setattr__(self, "_loss", CompiledLoss(self.surrogate, enabled=self.hparams.compile_network))
 
     def fit_statistics(self, samples: Any) -> None:
         """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
@@ -328,86 +321,32 @@ class AMPNLightningModule(L.LightningModule):
 
     # ---- training --------------------------------------------------------------------------
     def add_training_noise(self, data: HierarchicalData) -> HierarchicalData:
-        r"""Perturb ply positions and previous residuals with N(0, (noise :math:`\sigma_x`)^2), in place.
+        r"""The module's training noise (:func:`~torch_ampn.training.inputs.add_training_noise`), in place.
 
-        With ``correct_target`` the target residual becomes :math:`x^t - (x^{t-1} + \epsilon)`;
-        with ``correlated_noise`` the previous residual gets :math:`\epsilon` as well (plus its
-        own ``residual_noise``).
+        ``position_noise`` and ``residual_noise`` are in units of the surrogate's :math:`\sigma_x`.
         """
         hp = self.hparams
-        fine = data["l0"]
-        ply = fine.ply_mask[:, None].to(fine.pos.dtype)  # [N, 1]
-        sigma_x = self.surrogate.position_std
-        if hp.position_noise > 0:
-            eps = ply * (hp.position_noise * sigma_x) * torch.randn_like(fine.pos)  # [N, 3]
-            fine.pos = fine.pos + eps
-            if hp.correct_target:
-                fine.target = fine.target - eps
-            if hp.correlated_noise:
-                fine.prev_disp = fine.prev_disp + eps
-        if hp.residual_noise > 0:
-            fine.prev_disp = fine.prev_disp + ply * (hp.residual_noise * sigma_x) * torch.randn_like(fine.pos)
-        return data
+        return add_training_noise(
+            data, self.surrogate.position_std, hp.position_noise, hp.residual_noise,
+            correct_target=hp.correct_target, correlated_noise=hp.correlated_noise,
+        )  # fmt: skip
 
     def pushforward_inputs(self, data: HierarchicalData) -> HierarchicalData:
-        r"""Replace the true :math:`x^{t-1}` of ply nodes by the prediction from :math:`x^{t-2}`, in place.
+        """:func:`~torch_ampn.training.inputs.pushforward_inputs` with the surrogate's residual, in place."""
+        return pushforward_inputs(data, self.surrogate.predict_residual)
 
-        The window ``(t-2, t-1)`` is built with :func:`~torch_ampn.data.set_window` from the
-        fields :func:`~torch_ampn.data.step_sample` provides (``prev_disp``, ``prev_prev_disp``,
-        ``prev_gripper_*``; its contact edges are those of :math:`x^{t-1}`); with the predicted
-        :math:`\widehat{\Delta u}^{t-1}` (no gradient) and its error
-        :math:`e = \widehat{\Delta u}^{t-1} - \Delta u^{t-1}` on ply nodes of windows with
-        ``t >= 2``: ``pos`` :math:`+ e`, ``prev_disp`` :math:`+ e`, ``target`` :math:`- e`.
-        """
-        fine = data["l0"]
-        before = set_window(
-            copy.copy(data),
-            pos=fine.pos - fine.prev_disp,  # x^{t-2}
-            prev_disp=fine.prev_prev_disp,
-            next_disp=fine.prev_disp,
-            ply_mask=fine.ply_mask,
-            gripper_pos=data.prev_gripper_pos,
-            gripper_force=data.prev_gripper_force,
-            prior_pos=fine.get("prior_before"),
-            prior_next=fine.get("prior_pos"),
-        )
-        with torch.no_grad():
-            predicted = self.surrogate.predict_residual(before).to(fine.pos.dtype)  # [N, 3]
-        step = data.step[fine.batch] if "batch" in fine else data.step.expand(fine.num_nodes)  # [N]
-        moved = fine.ply_mask & (step >= 2)  # [N]
-        error = torch.where(moved[:, None], predicted - fine.prev_disp, torch.zeros_like(predicted))
-        fine.pos = fine.pos + error
-        fine.prev_disp = fine.prev_disp + error
-        fine.target = fine.target - error
-        return data
+    @property
+    def _compiled_network(self):
+        """The compiled network (``None``: not yet compiled; ``False``: eager), see :class:`CompiledLoss`."""
+        return self._loss.network
 
     def training_loss(self, data: HierarchicalData) -> Tensor:
         """The surrogate's loss on a (noised) batch.
 
-        With ``compile_network`` it runs through the compiled network (compiled at the first call).
+        With ``compile_network`` it runs through the compiled network (compiled at the first call,
+        :class:`~torch_ampn.training.compiled_loss.CompiledLoss`).
         """
-        compiled = self._compiled_network
-        if compiled is False:
-            return self.surrogate.loss(data)
-        if compiled is not None:
-            return self.surrogate.loss(data, network=compiled)
-        compiled = torch.compile(self.surrogate.diffusion.model, dynamic=True)
-        cuda = data["l0"].pos.device.type == "cuda"
-        rng = torch.get_rng_state(), torch.cuda.get_rng_state(data["l0"].pos.device) if cuda else None
-        try:
-            loss = self.surrogate.loss(data, network=compiled)
-        except Exception as err:  # noqa: BLE001 - any compiler failure: go on eager
-            rank_zero_warn(
-                f"compile_network: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "
-                "training goes on without it"
-            )
-            object.__setattr__(self, "_compiled_network", False)
-            torch.set_rng_state(rng[0])  # the eager step draws the same noise as the failed one
-            if rng[1] is not None:
-                torch.cuda.set_rng_state(rng[1], data["l0"].pos.device)
-            return self.surrogate.loss(data)
-        object.__setattr__(self, "_compiled_network", compiled)
-        return loss
+        return self._loss(data)
 
     def training_inputs(self, batch: HierarchicalData) -> HierarchicalData:
         """The batch as the loss sees it, in place: pushed forward (probability ``pushforward``), noised."""
