@@ -86,10 +86,10 @@ def test_loss_trains_the_network_and_the_rollout_takes_the_plain_path(window):
 @pytest.mark.parametrize(
     ("path", "message"),
     [
-        ("PointwiseNetwork", "is not 'package.module:Class'"),
+        ("PointwiseNetwork", "is not 'package.module:name'"),
         ("no_such_module:Net", "cannot import 'no_such_module'"),
-        ("helpers:NoSuchNetwork", "'helpers' has no torch.nn.Module class 'NoSuchNetwork'"),
-        ("helpers:tiny_cli_config", "has no torch.nn.Module class 'tiny_cli_config'"),
+        ("helpers:NoSuchNetwork", "'helpers' has no 'NoSuchNetwork'"),
+        ("helpers:tiny_cli_config", "'helpers:tiny_cli_config' is not a torch.nn.Module class"),
     ],
 )
 def test_a_bad_network_class_is_refused_in_one_line(path, message):

@@ -345,6 +345,50 @@ def test_datamodule_checks_model_and_predict_settings(data_dir, tmp_path):
         AMPNDataModule(str(tmp_path / "x"), simulator={"ply_cells": -3}).prepare_data()
 
 
+def copy_splits_of(source):
+    """A dataset maker (``make_dataset``) that copies the first trajectories of each split of ``source``."""
+    import shutil
+
+    def make(folder, num_train, num_val, num_test):
+        for split, count in (("train", num_train), ("val", num_val), ("test", num_test)):
+            (folder / split).mkdir(parents=True, exist_ok=True)
+            for path in sorted((source / split).glob("*.pt"))[:count]:
+                shutil.copy(path, folder / split / path.name)
+
+    return make
+
+
+#: A dataset maker named by its import path, as a config gives it (set by the test below).
+named_maker = None
+
+
+def test_datamodule_takes_a_dataset_maker(tmp_path, tiny_data):
+    made = []
+
+    def maker(folder, num_train, num_val, num_test):
+        made.append((folder, num_train, num_val, num_test))
+        copy_splits_of(tiny_data)(folder, num_train, num_val, num_test)
+
+    dm = AMPNDataModule(str(tmp_path / "own"), num_train=2, num_val=1, num_test=0, make_dataset=maker)
+    dm.prepare_data()  # the maker, not the simulator
+    assert made == [(tmp_path / "own", 2, 1, 0)]
+    assert (
+        sorted(p.name for p in (tmp_path / "own" / "train").glob("*.pt"))
+        == sorted(p.name for p in (tiny_data / "train").glob("*.pt"))[:2]
+    )
+    assert "make_dataset" not in dm.hparams  # a function is no checkpoint value
+    dm.setup("fit")
+    assert len(dm.train_dataset) > 0
+    global named_maker
+    named_maker = copy_splits_of(tiny_data)
+    by_name = AMPNDataModule(str(tmp_path / "named"), 1, 0, 0, make_dataset="test_training:named_maker")
+    by_name.prepare_data()
+    assert len(list((tmp_path / "named" / "train").glob("*.pt"))) == 1
+    assert by_name.hparams.make_dataset == "test_training:named_maker"
+    with pytest.raises(ValueError, match="^data.make_dataset: cannot import 'no_such_module'"):
+        AMPNDataModule(str(tmp_path / "x"), make_dataset="no_such_module:make")
+
+
 def test_datamodule_generates_an_empty_folder(tmp_path):
     dm = AMPNDataModule(
         str(tmp_path / "new"),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -21,6 +20,7 @@ from torch_ampn.nn.ampn import AMPN, EdgeType
 from torch_ampn.nn.diffusion import DiffusionAMPN
 from torch_ampn.nn.multilevel_loss import multilevel_mse
 from torch_ampn.transforms.contact import ComponentRadiusGraph
+from torch_ampn.utils.imports import import_object
 
 
 class AMPNSurrogate(nn.Module):
@@ -343,16 +343,7 @@ class AMPNSurrogate(nn.Module):
 
 def import_network_class(path: str) -> type[nn.Module]:
     """The class ``"package.module:Class"`` (or ``"package.module.Class"``) names; one-line errors."""
-    module_name, sep, name = path.partition(":")
-    if not sep:
-        module_name, _, name = path.rpartition(".")
-    if not module_name or not name:
-        raise ValueError(f"network_class: {path!r} is not 'package.module:Class'")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as err:
-        raise ValueError(f"network_class: cannot import {module_name!r} ({err})") from None
-    cls = getattr(module, name, None)
+    cls = import_object(path, "network_class")
     if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
-        raise ValueError(f"network_class: {module_name!r} has no torch.nn.Module class {name!r}")
+        raise ValueError(f"network_class: {path!r} is not a torch.nn.Module class")
     return cls

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,6 @@ from torch_ampn.data.dataset import (
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
-from torch_ampn.sim.dataset import generate_dataset
 from torch_ampn.sim.family import PartFamily
 from torch_ampn.training.items import (
     EachOnceSampler,
@@ -36,15 +36,17 @@ from torch_ampn.training.items import (
     list_collate,
 )
 from torch_ampn.transforms.contact import ComponentRadiusGraph
+from torch_ampn.utils.imports import import_object
 
 
 class AMPNDataModule(L.LightningDataModule):
     """Training windows and whole trajectories of a dataset folder.
 
     Layout: ``<data_dir>/{train,val,test}/*.pt`` (see :mod:`torch_ampn.data.trajectory`). With
-    ``generate=True`` the missing trajectories of the requested split sizes are simulated
-    first with the embedded simulator (``torch-ampn-data generate``, progress bar, parallel,
-    resumable), so an empty folder becomes the default dataset.
+    ``generate=True`` the missing trajectories of the requested split sizes are made first, by
+    default with the embedded simulator (``torch-ampn-data generate``, progress bar, parallel,
+    resumable; ``make_dataset`` puts another source in its place), so an empty folder becomes
+    the default dataset.
 
     * ``fit``: :class:`~torch_ampn.data.StepDataset` windows with contact edges
       (:class:`~torch_ampn.transforms.ComponentRadiusGraph`), batched by PyG's ``DataLoader``;
@@ -105,6 +107,11 @@ class AMPNDataModule(L.LightningDataModule):
             training split (``prior_folds`` folds), fitted on the whole training split for the
             others and for predict; ``None``: no prior.
         prior_folds: Folds of the training split's out-of-fold priors.
+        make_dataset: What makes the missing trajectories when ``generate``: a function
+            ``(folder, num_train, num_val, num_test) -> None`` (or its import path
+            ``"package.module:name"``, as configs give it) that writes
+            ``<folder>/{train,val,test}/*.pt`` trajectories (e.g. runs one's own solver and
+            converts its output); ``None``: the embedded simulator (:meth:`simulate_dataset`).
         shuffle_seed: Seed of the training windows' order (a permutation per epoch, see
             :class:`~torch_ampn.training.items.ResumableShuffleSampler`); ``None``: the fit's
             ``seed_everything`` value (0 without one). A fit resumed from a checkpoint continues
@@ -142,11 +149,20 @@ class AMPNDataModule(L.LightningDataModule):
         family: dict[str, Any] | str | None = None,
         prior: str | None = None,
         prior_folds: int = 5,
+        make_dataset: str | Callable[..., Any] | None = None,
     ) -> None:
         super().__init__()
         if predict_batch_size < 1:
             raise ValueError(f"data.predict_batch_size must be >= 1, got {predict_batch_size}")
-        self.save_hyperparameters()
+        # a function object is not a checkpoint's plain value: only its import path is kept
+        self.save_hyperparameters(ignore=["make_dataset"] if callable(make_dataset) else None)
+        self._make_dataset = (
+            import_object(make_dataset, "data.make_dataset")
+            if isinstance(make_dataset, str)
+            else make_dataset
+        )
+        if self._make_dataset is not None and not callable(self._make_dataset):
+            raise ValueError(f"data.make_dataset: {make_dataset!r} is not callable")
         self.data_dir = Path(data_dir)
         self.contact = ComponentRadiusGraph(
             contact_radius, contact_k, mode=contact_mode, positions=contact_positions
@@ -162,25 +178,30 @@ class AMPNDataModule(L.LightningDataModule):
 
     # ---- data on disk ------------------------------------------------------------------------
     def prepare_data(self) -> None:
-        """Simulate the missing trajectories (``generate=True``), or check that the folder has data."""
+        """Make the missing trajectories (``generate=True``), or check that the folder has data."""
         hp = self.hparams
         if hp.generate:
-            generate_dataset(
-                self.data_dir,
-                hp.num_train,
-                hp.num_val,
-                hp.num_test,
-                resolution=hp.resolution,
-                workers=hp.generate_workers,
-                compile=hp.get("generate_compile", True),
-                config=self._generator_config(),
-                family=self._family(),
-            )
+            make = self._make_dataset or self.simulate_dataset
+            make(self.data_dir, hp.num_train, hp.num_val, hp.num_test)
             return
         if not any(split_files(self.data_dir, s) for s in ("train", "val", "test")):
             raise FileNotFoundError(
                 f"{self.data_dir}: no trajectories; set data.generate=true to simulate the default dataset"
             )
+
+    def simulate_dataset(self, folder: Path, num_train: int, num_val: int, num_test: int) -> None:
+        """The default ``make_dataset``: the embedded simulator with this module's settings.
+
+        ``resolution``, ``simulator``, ``family``, ``generate_workers`` and ``generate_compile``
+        apply; existing valid trajectories are kept (:func:`~torch_ampn.sim.generate_dataset`).
+        """
+        from torch_ampn.sim.dataset import generate_dataset
+
+        hp = self.hparams
+        generate_dataset(
+            folder, num_train, num_val, num_test, resolution=hp.resolution, workers=hp.generate_workers,
+            compile=hp.get("generate_compile", True), config=self._generator_config(), family=self._family(),
+        )  # fmt: skip
 
     def _family(self) -> PartFamily | None:
         spec = self.hparams.family
