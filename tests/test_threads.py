@@ -4,6 +4,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from torch_ampn.utils.threads import WAIT_POLICY, configure_threads
 
 SHOW = "import os, sys; {imports}; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
@@ -39,3 +41,59 @@ def test_configure_threads_reports_what_it_did(monkeypatch):
     assert configure_threads(env) == "late" and env == {}
     assert configure_threads({"AMPN_THREADS": "OFF"}) == "off"
     assert configure_threads({"OMP_WAIT_POLICY": "ACTIVE"}) == "user"
+
+
+def test_latency_bound_work_runs_on_one_thread_and_restores_the_count(monkeypatch):
+    import torch
+
+    from torch_ampn.utils.threads import LATENCY_BOUND_THREADS, latency_bound_threads
+
+    before = torch.get_num_threads()
+    monkeypatch.delenv("AMPN_THREADS", raising=False)
+    try:
+        torch.set_num_threads(2)
+        with latency_bound_threads("cpu"):
+            assert torch.get_num_threads() == LATENCY_BOUND_THREADS == 1
+        assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError), latency_bound_threads():  # restored on an error too
+            raise RuntimeError
+        assert torch.get_num_threads() == 2
+        with latency_bound_threads("meta"):  # not the CPU: left alone
+            assert torch.get_num_threads() == 2
+        monkeypatch.setenv("AMPN_THREADS", "off")
+        with latency_bound_threads("cpu"):
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_the_simulator_and_the_rollouts_run_on_one_thread(monkeypatch):
+    import torch
+
+    import torch_ampn.sim.simulate as sim
+    from torch_ampn.data import HierarchyCache
+    from torch_ampn.rollout import rollout
+
+    before = torch.get_num_threads()
+    monkeypatch.delenv("AMPN_THREADS", raising=False)
+    counts = {"simulate": [], "rollout": []}
+    real_travel = sim.punch_travel
+
+    def travel(t, cfg):  # called at every sub-step of the simulator
+        counts["simulate"].append(torch.get_num_threads())
+        return real_travel(t, cfg)
+
+    def predictor(data):
+        counts["rollout"].append(torch.get_num_threads())
+        return torch.zeros_like(data["l0"].pos)
+
+    monkeypatch.setattr(sim, "punch_travel", travel)
+    try:
+        torch.set_num_threads(2)
+        traj = sim.simulate(sim.StampFormingConfig(ply_cells=4, num_steps=2))
+        rollout(predictor, traj, HierarchyCache(None, max_levels=2)(traj))
+        assert torch.get_num_threads() == 2  # restored after each
+    finally:
+        torch.set_num_threads(before)
+    assert counts["simulate"] and set(counts["simulate"]) == {1}
+    assert counts["rollout"] == [1, 1]  # every step of the rollout

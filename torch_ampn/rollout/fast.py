@@ -51,6 +51,7 @@ from torch_ampn.utils.compile_fallback import EagerFallback
 from torch_ampn.utils.compile_passes import UnfuseBiasAdd
 from torch_ampn.utils.heap import retained_heap
 from torch_ampn.utils.own_code import own_code
+from torch_ampn.utils.threads import latency_bound_threads
 
 #: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
 _CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
@@ -560,7 +561,8 @@ class FastRollout:
             from tqdm.auto import tqdm
 
             iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
-        with retained_heap(self.retain_heap and dev.type == "cpu"):  # no page faults per step
+        # no page faults per step; many small kernels: one thread, waiting for none
+        with retained_heap(self.retain_heap and dev.type == "cpu"), latency_bound_threads(dev):
             for t in iterator:
                 pos = pred[t - 1]
                 prev = pred[max(t - 2, 0)]  # the first step has no previous displacement

@@ -22,6 +22,7 @@ from torch import Tensor
 from torch_ampn.data.dataset import step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.utils.threads import latency_bound_threads
 
 Predictor = Callable[[HierarchicalData], Tensor]
 Transform = Callable[[HierarchicalData], HierarchicalData]
@@ -99,18 +100,19 @@ def rollout(
         iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
     # edges from the initial state (ComponentRadiusGraph(positions="initial")) are built once
     static_contact = getattr(contact, "positions", "current") == "initial"
-    edges: list[Tensor] | None = None
-    for t in iterator:
-        data = step_sample(state, t, hierarchy)
-        if edges is not None:
-            for level, edge_index in enumerate(edges):
-                data.contact(level).edge_index = edge_index
-        elif contact is not None:
-            data = contact(data)
-            if static_contact:
-                edges = [data.contact(level).edge_index for level in range(data.num_levels)]
-        du = predictor(data).float()  # [N, 3]
-        pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
+    with latency_bound_threads(device):  # many small kernels: one thread, waiting for none
+        edges: list[Tensor] | None = None
+        for t in iterator:
+            data = step_sample(state, t, hierarchy)
+            if edges is not None:
+                for level, edge_index in enumerate(edges):
+                    data.contact(level).edge_index = edge_index
+            elif contact is not None:
+                data = contact(data)
+                if static_contact:
+                    edges = [data.contact(level).edge_index for level in range(data.num_levels)]
+            du = predictor(data).float()  # [N, 3]
+            pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
     return pred[: steps + 1].cpu()
 
 

@@ -28,6 +28,7 @@ from torch_ampn.sim.contact import (
 from torch_ampn.sim.geometry import die_surface, punch_surface, punch_travel
 from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
 from torch_ampn.utils.own_code import own_code
+from torch_ampn.utils.threads import latency_bound_threads
 
 
 def build_mesh(cfg: StampFormingConfig) -> MultiComponentMesh:
@@ -511,34 +512,35 @@ def simulate_batch(
         processes = [sample_process(cfg, int(s)) for s in seeds]
     else:
         processes = [explicit_process(cfg, where, force) for where, force in settings]
-    mesh = build_mesh(cfg)
-    model = LaminateModel(cfg, mesh, processes).to(device)
-    step = model.step_function(compile)
-    n, copies = model.n, model.copies
-    x, v = model.x0.clone(), torch.zeros_like(model.x0)
-    if perturbation < 0:
-        raise ValueError(f"perturbation must be >= 0 mm, got {perturbation}")
-    if perturbation > 0:
-        for b, seed in enumerate(seeds):
-            g = torch.Generator().manual_seed(int(seed))
-            noise = (2 * torch.rand(n, 3, generator=g, dtype=x.dtype) - 1) * perturbation  # [n, 3]
-            x[b * n : (b + 1) * n] += noise.to(x.device) * model.free[b * n : (b + 1) * n]
-    frames = [x.clone()]
-    steps = range(1, cfg.num_steps + 1)
-    if progress:
-        from tqdm.auto import tqdm
+    with latency_bound_threads(device):  # many small kernels: one thread, waiting for none
+        mesh = build_mesh(cfg)
+        model = LaminateModel(cfg, mesh, processes).to(device)
+        step = model.step_function(compile)
+        n, copies = model.n, model.copies
+        x, v = model.x0.clone(), torch.zeros_like(model.x0)
+        if perturbation < 0:
+            raise ValueError(f"perturbation must be >= 0 mm, got {perturbation}")
+        if perturbation > 0:
+            for b, seed in enumerate(seeds):
+                g = torch.Generator().manual_seed(int(seed))
+                noise = (2 * torch.rand(n, 3, generator=g, dtype=x.dtype) - 1) * perturbation  # [n, 3]
+                x[b * n : (b + 1) * n] += noise.to(x.device) * model.free[b * n : (b + 1) * n]
+        frames = [x.clone()]
+        steps = range(1, cfg.num_steps + 1)
+        if progress:
+            from tqdm.auto import tqdm
 
-        steps = tqdm(steps, desc=f"simulate x{copies}", unit="step", leave=False)
-    for k in steps:
-        model.refresh_pairs(x)
-        for sub in range(model.substeps):
-            t = ((k - 1) * model.substeps + sub + 1) * model.dt
-            travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype, device=x.device)
-            x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
-        if not torch.isfinite(x).all():
-            raise FloatingPointError(f"simulation diverged at step {k} (seeds {list(seeds)})")
-        frames.append(x.clone())
-    ply_frames = torch.stack(frames).cpu().view(cfg.num_steps + 1, copies, n, 3)
+            steps = tqdm(steps, desc=f"simulate x{copies}", unit="step", leave=False)
+        for k in steps:
+            model.refresh_pairs(x)
+            for sub in range(model.substeps):
+                t = ((k - 1) * model.substeps + sub + 1) * model.dt
+                travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype, device=x.device)
+                x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+            if not torch.isfinite(x).all():
+                raise FloatingPointError(f"simulation diverged at step {k} (seeds {list(seeds)})")
+            frames.append(x.clone())
+        ply_frames = torch.stack(frames).cpu().view(cfg.num_steps + 1, copies, n, 3)
 
     times, tool_frames = _tool_motion(cfg, mesh, n)
     fiber = _fiber_directions(cfg, mesh, n)

@@ -9,18 +9,26 @@ slower: a quickstart training step 68x, a fast rollout and a simulated trajector
 user chose a wait policy or a spin count, before torch is imported: ``import torch_ampn``
 calls it, so the ``torch-ampn`` commands, the data generator and the benchmarks get it.
 Import ``torch_ampn`` before ``torch`` (or set the variable yourself) in your own scripts.
-On an otherwise idle machine ``OMP_WAIT_POLICY=ACTIVE`` is up to 1.3x faster; ``AMPN_THREADS=off``
-leaves torch as it comes.
+
+Sleeping threads cost a wake-up per parallel region, which latency-bound work pays hundreds of
+times per step: a rollout step and a simulator sub-step are many small kernels. Those run on
+:data:`LATENCY_BOUND_THREADS` intra-op thread (:func:`latency_bound_threads`), which waits for
+no other thread at all; training, whose large products use both cores, keeps torch's count.
+``AMPN_THREADS=off`` leaves torch as it comes (its wait policy and thread count everywhere).
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from collections.abc import MutableMapping
+from collections.abc import Iterator, MutableMapping
+from contextlib import contextmanager
+from typing import Any
 
 #: The wait policy set unless the user chose one.
 WAIT_POLICY = "PASSIVE"
+#: Intra-op threads of latency-bound CPU work (a rollout, the simulator): see :func:`latency_bound_threads`.
+LATENCY_BOUND_THREADS = 1
 #: Settings that, when the user set them, win over :data:`WAIT_POLICY`.
 USER_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
@@ -41,3 +49,29 @@ def configure_threads(environ: MutableMapping[str, str] | None = None) -> str:
         return "late"
     environ["OMP_WAIT_POLICY"] = WAIT_POLICY
     return f"wait={WAIT_POLICY}"
+
+
+@contextmanager
+def latency_bound_threads(device: Any = None) -> Iterator[None]:
+    """Run the block on :data:`LATENCY_BOUND_THREADS` intra-op thread(s), then restore torch's count.
+
+    For work made of many small kernels on the CPU (a rollout, the simulator): one thread
+    runs them without waking or waiting for another, which on 2 cores is faster than two
+    sleeping threads and, unlike two spinning ones, keeps its speed beside other busy
+    processes (benchmarks/README.md, "Speed under load"). Compiled code built inside the
+    block is built for that thread count. Nothing changes for a ``device`` other than the
+    CPU, with ``AMPN_THREADS=off``, or where torch already uses no more threads.
+    """
+    import torch
+
+    off = os.environ.get("AMPN_THREADS", "").lower() == "off"
+    cpu = device is None or torch.device(device).type == "cpu"
+    before = torch.get_num_threads()
+    if off or not cpu or before <= LATENCY_BOUND_THREADS:
+        yield
+        return
+    torch.set_num_threads(LATENCY_BOUND_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
