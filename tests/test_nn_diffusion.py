@@ -142,7 +142,7 @@ def test_multi_step_needs_step_conditioning():
     with pytest.raises(ValueError, match="step conditioning"):
         DiffusionAMPN(make(0), num_steps=5)
     with pytest.raises(ValueError, match="noise input"):
-        DiffusionAMPN(AMPN(10, hidden_channels=8, num_levels=1, noise_channels=0), num_steps=1)
+        DiffusionAMPN(AMPN(10, 4, 8, hidden_channels=8, num_levels=1, noise_channels=0), num_steps=1)
 
 
 def test_pointwise_loss_by_hand():
