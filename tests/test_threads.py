@@ -46,7 +46,7 @@ def test_configure_threads_reports_what_it_did(monkeypatch):
 def test_latency_bound_work_runs_on_one_thread_and_restores_the_count(monkeypatch):
     import torch
 
-    from torch_ampn.utils.threads import LATENCY_BOUND_THREADS, latency_bound_threads
+    from torch_ampn.utils.threads import LATENCY_BOUND_ELEMENTS, LATENCY_BOUND_THREADS, latency_bound_threads
 
     before = torch.get_num_threads()
     monkeypatch.delenv("AMPN_THREADS", raising=False)
@@ -59,6 +59,10 @@ def test_latency_bound_work_runs_on_one_thread_and_restores_the_count(monkeypatc
             raise RuntimeError
         assert torch.get_num_threads() == 2
         with latency_bound_threads("meta"):  # not the CPU: left alone
+            assert torch.get_num_threads() == 2
+        with latency_bound_threads("cpu", elements=LATENCY_BOUND_ELEMENTS):  # small kernels: one thread
+            assert torch.get_num_threads() == 1
+        with latency_bound_threads("cpu", elements=LATENCY_BOUND_ELEMENTS + 1):  # bound by arithmetic
             assert torch.get_num_threads() == 2
         monkeypatch.setenv("AMPN_THREADS", "off")
         with latency_bound_threads("cpu"):

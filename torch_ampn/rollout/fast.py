@@ -224,6 +224,8 @@ class FastRollout:
         self.hierarchy = h
         sizes = [h.level(k).num_nodes for k in range(self.num_levels)]  # N_k of one setting
         self.num_nodes = sizes[0]
+        #: Elements of the step's typical kernel, ``B N d`` (what decides its thread count and C++ wrapper).
+        self.elements = b * sizes[0] * getattr(surrogate.model, "hidden_channels", 1)
         dev = self.device
         graph = [torch.arange(b, device=dev).repeat_interleave(n) for n in sizes]  # [B N_k]
 
@@ -297,7 +299,7 @@ class FastRollout:
             if cpp_wrapper is None:
                 cpp_wrapper = _cpp_wrapper_from_environment()
             if cpp_wrapper is None:
-                cpp_wrapper = b * sizes[0] * s.model.hidden_channels <= self.CPP_WRAPPER_LIMIT
+                cpp_wrapper = self.elements <= self.CPP_WRAPPER_LIMIT
             self.cpp_wrapper = bool(cpp_wrapper) and not cuda
             options = (
                 None
@@ -562,7 +564,7 @@ class FastRollout:
 
             iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
         # no page faults per step; many small kernels: one thread, waiting for none
-        with retained_heap(self.retain_heap and dev.type == "cpu"), latency_bound_threads(dev):
+        with retained_heap(self.retain_heap and dev.type == "cpu"), latency_bound_threads(dev, self.elements):
             for t in iterator:
                 pos = pred[t - 1]
                 prev = pred[max(t - 2, 0)]  # the first step has no previous displacement

@@ -100,7 +100,8 @@ def rollout(
         iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
     # edges from the initial state (ComponentRadiusGraph(positions="initial")) are built once
     static_contact = getattr(contact, "positions", "current") == "initial"
-    with latency_bound_threads(device):  # many small kernels: one thread, waiting for none
+    elements = traj.num_nodes * _width(predictor)  # [N, d]: the size of its typical kernel
+    with latency_bound_threads(device, elements):  # many small kernels: one thread, waiting for none
         edges: list[Tensor] | None = None
         for t in iterator:
             data = step_sample(state, t, hierarchy)
@@ -114,6 +115,12 @@ def rollout(
             du = predictor(data).float()  # [N, 3]
             pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
     return pred[: steps + 1].cpu()
+
+
+def _width(predictor: Predictor) -> int:
+    """Channels per node of a surrogate's network (``predict_residual`` bound to it), else 1 (a baseline)."""
+    owner = getattr(predictor, "__self__", predictor)
+    return int(getattr(getattr(owner, "model", None), "hidden_channels", 1) or 1)
 
 
 def next_positions(ply: Tensor, pos: Tensor, residual: Tensor, tool_next: Tensor) -> Tensor:

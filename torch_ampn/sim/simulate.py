@@ -512,8 +512,9 @@ def simulate_batch(
         processes = [sample_process(cfg, int(s)) for s in seeds]
     else:
         processes = [explicit_process(cfg, where, force) for where, force in settings]
-    with latency_bound_threads(device):  # many small kernels: one thread, waiting for none
-        mesh = build_mesh(cfg)
+    mesh = build_mesh(cfg)
+    # many small kernels: one thread, waiting for none (per kernel: the coordinates of every copy)
+    with latency_bound_threads(device, elements=3 * len(processes) * mesh.num_nodes):
         model = LaminateModel(cfg, mesh, processes).to(device)
         step = model.step_function(compile)
         n, copies = model.n, model.copies

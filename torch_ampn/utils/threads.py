@@ -29,6 +29,10 @@ from typing import Any
 WAIT_POLICY = "PASSIVE"
 #: Intra-op threads of latency-bound CPU work (a rollout, the simulator): see :func:`latency_bound_threads`.
 LATENCY_BOUND_THREADS = 1
+#: Largest work per kernel (elements, e.g. settings x nodes x channels) counted as latency-bound:
+#: the quickstart network on the coarse mesh (8 settings at once: 1 << 18) is; the paper's network
+#: on its mesh (about 20 times more) is bound by arithmetic, where more threads pay.
+LATENCY_BOUND_ELEMENTS = 1 << 18
 #: Settings that, when the user set them, win over :data:`WAIT_POLICY`.
 USER_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
@@ -52,7 +56,7 @@ def configure_threads(environ: MutableMapping[str, str] | None = None) -> str:
 
 
 @contextmanager
-def latency_bound_threads(device: Any = None) -> Iterator[None]:
+def latency_bound_threads(device: Any = None, elements: int | None = None) -> Iterator[None]:
     """Run the block on :data:`LATENCY_BOUND_THREADS` intra-op thread(s), then restore torch's count.
 
     For work made of many small kernels on the CPU (a rollout, the simulator): one thread
@@ -60,14 +64,17 @@ def latency_bound_threads(device: Any = None) -> Iterator[None]:
     sleeping threads and, unlike two spinning ones, keeps its speed beside other busy
     processes (benchmarks/README.md, "Speed under load"). Compiled code built inside the
     block is built for that thread count. Nothing changes for a ``device`` other than the
-    CPU, with ``AMPN_THREADS=off``, or where torch already uses no more threads.
+    CPU, for ``elements`` (the size of the work's typical kernel) above
+    :data:`LATENCY_BOUND_ELEMENTS`, with ``AMPN_THREADS=off``, or where torch already uses
+    no more threads.
     """
     import torch
 
     off = os.environ.get("AMPN_THREADS", "").lower() == "off"
     cpu = device is None or torch.device(device).type == "cpu"
+    large = elements is not None and elements > LATENCY_BOUND_ELEMENTS
     before = torch.get_num_threads()
-    if off or not cpu or before <= LATENCY_BOUND_THREADS:
+    if off or not cpu or large or before <= LATENCY_BOUND_THREADS:
         yield
         return
     torch.set_num_threads(LATENCY_BOUND_THREADS)
