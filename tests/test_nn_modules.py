@@ -84,3 +84,16 @@ def test_normalizer_without_centering_only_scales():
     )
     torch.testing.assert_close(norm.denormalize(norm(data)), data)
     assert "center=False" in repr(norm)
+
+
+def test_the_forming_names_still_import_from_nn_with_a_warning():
+    import torch_ampn.forming
+    import torch_ampn.nn
+
+    with pytest.warns(FutureWarning, match="torch_ampn.nn.AMPNSurrogate moved to torch_ampn.forming"):
+        assert torch_ampn.nn.AMPNSurrogate is torch_ampn.forming.AMPNSurrogate
+    with pytest.warns(FutureWarning):
+        from torch_ampn.nn import hierarchical_features
+    assert hierarchical_features is torch_ampn.forming.hierarchical_features
+    with pytest.raises(AttributeError, match="no attribute 'NoSuchThing'"):
+        torch_ampn.nn.NoSuchThing  # noqa: B018

@@ -30,30 +30,12 @@ __all__ = [
     "restrict_mean",
 ]
 
-#: Names that moved to :mod:`torch_ampn.forming` (still importable from here, with a warning).
-_MOVED = frozenset(
-    {
-        "AMPNSurrogate",
-        "Normalizer",
-        "coarse_node_features",
-        "component_features",
-        "edge_features",
-        "fine_node_features",
-        "gripper_features",
-        "hierarchical_features",
-        "node_type_one_hot",
-        "num_coarse_node_features",
-        "num_edge_features",
-        "num_fine_node_features",
-    }
-)
-
 
 def __getattr__(name: str):
-    """The forming names that used to live here, from :mod:`torch_ampn.forming`, with a FutureWarning."""
-    if name in _MOVED:
-        import torch_ampn.forming
+    """The forming names that used to live here (:mod:`torch_ampn.forming`'s), with a FutureWarning."""
+    import torch_ampn.forming
 
+    if name in torch_ampn.forming.__all__:
         warnings.warn(f"torch_ampn.nn.{name} moved to torch_ampn.forming.{name}", FutureWarning, stacklevel=2)
         return getattr(torch_ampn.forming, name)
     raise AttributeError(f"module 'torch_ampn.nn' has no attribute {name!r}")
