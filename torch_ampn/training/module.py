@@ -11,10 +11,10 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming.surrogate import AMPNSurrogate
-from torch_ampn.rollout import rollout, rollout_rmse, rollout_surrogate
+from torch_ampn.rollout import rollout_rmse, rollout_surrogate
+from torch_ampn.training.baseline_rollouts import BaselineRollouts
 from torch_ampn.training.compiled_loss import CompiledLoss
 from torch_ampn.training.inputs import add_training_noise, pushforward_inputs
 from torch_ampn.training.items import RolloutItem, gather_objects
@@ -407,12 +407,8 @@ class AMPNLightningModule(L.LightningModule):
         """Check the test trajectories' meshes; fit the setting-aware baselines; start a new test report."""
         self._check_meshes("test")
         self._report = TestReport(self.output_dir())
-        self._setting_baselines, reason = {}, "no training split to fit them on"
         datamodule = getattr(self.trainer, "datamodule", None)
-        if hasattr(datamodule, "training_trajectories"):
-            fitted = datamodule.fitted_baselines() if hasattr(datamodule, "fitted_baselines") else {}
-            trajectories = datamodule.training_trajectories()
-            self._setting_baselines, reason = fit_setting_baselines(trajectories, fitted)
+        self._baselines, reason = BaselineRollouts.fitted(datamodule, self.hparams.touch_radii)
         if reason is not None and self.trainer.is_global_zero:
             print(f"setting-aware baselines: not reported ({reason})")
 
@@ -421,14 +417,7 @@ class AMPNLightningModule(L.LightningModule):
         traj = item.trajectory
         pred, seconds = self.rollout_item(item)
         rmse = rollout_rmse(pred, traj.pos, traj.ply_mask)  # [T+1]
-        baselines = {
-            "static": rollout_rmse(rollout(static_plies, traj, item.hierarchy), traj.pos, traj.ply_mask)
-        }
-        for radius in self.hparams.touch_radii:
-            rigid = rollout(RigidWithPunch(radius), traj, item.hierarchy)
-            baselines[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
-        for name, baseline in getattr(self, "_setting_baselines", {}).items():
-            baselines[name] = rollout_rmse(baseline.predict(traj), traj.pos, traj.ply_mask)
+        baselines = self._baselines.rmse(item)
         assert self._report is not None
         self._report.add(item, pred, rmse, baselines, seconds, xdmf=self.hparams.export_xdmf)
         return rmse[1:].mean()

@@ -1,0 +1,53 @@
+"""The baselines ``torch-ampn test`` reports next to the model, rolled out on each test trajectory."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from torch import Tensor
+
+from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
+from torch_ampn.rollout import rollout, rollout_rmse
+from torch_ampn.training.items import RolloutItem
+
+
+class BaselineRollouts:
+    """Trivial and setting-aware baselines of a test report.
+
+    Trivial: the plies left where they start (``static``) and moved rigidly with the punch
+    within each touch radius (``rigid_r<radius>``); they ignore the training data. Setting-aware
+    (:func:`~torch_ampn.baselines.fit_setting_baselines`): fitted on the training trajectories.
+
+    Args:
+        touch_radii: Radii (mm) of the rigid-with-punch baselines.
+        setting_baselines: Fitted setting-aware baselines by name (``{}``: none).
+    """
+
+    def __init__(self, touch_radii: Sequence[float], setting_baselines: dict[str, Any] | None = None) -> None:
+        self.touch_radii = tuple(touch_radii)
+        self.setting_baselines = dict(setting_baselines or {})
+
+    @classmethod
+    def fitted(cls, datamodule: Any, touch_radii: Sequence[float]) -> tuple[BaselineRollouts, str | None]:
+        """The baselines with the setting-aware ones fitted on ``datamodule``'s training split.
+
+        Returns ``(baselines, reason)``: ``reason`` says why no setting-aware baseline is
+        reported (no training split, fewer than 2 trajectories, ...), else ``None``.
+        """
+        if not hasattr(datamodule, "training_trajectories"):
+            return cls(touch_radii), "no training split to fit them on"
+        fitted = datamodule.fitted_baselines() if hasattr(datamodule, "fitted_baselines") else {}
+        setting, reason = fit_setting_baselines(datamodule.training_trajectories(), fitted)
+        return cls(touch_radii, setting), reason
+
+    def rmse(self, item: RolloutItem) -> dict[str, Tensor]:
+        """Per-step RMSE ``[T+1]`` (mm, ply nodes) of every baseline on ``item``'s trajectory, by name."""
+        traj, hierarchy = item.trajectory, item.hierarchy
+        out = {"static": rollout_rmse(rollout(static_plies, traj, hierarchy), traj.pos, traj.ply_mask)}
+        for radius in self.touch_radii:
+            rigid = rollout(RigidWithPunch(radius), traj, hierarchy)
+            out[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
+        for name, baseline in self.setting_baselines.items():
+            out[name] = rollout_rmse(baseline.predict(traj), traj.pos, traj.ply_mask)
+        return out
