@@ -94,8 +94,10 @@ def worker(name: str, data_dir: str) -> dict:
         seconds = time_simulator(StampFormingConfig(), seed=0)
     else:
         raise ValueError(f"workload must be one of {WORKLOADS}, got {name!r}")
+    from device_info import device_name
+
     env = {k: os.environ[k] for k in CONTROLLED if k in os.environ}
-    return {"seconds": seconds, "threads": torch.get_num_threads(), "env": env}
+    return {"seconds": seconds, "threads": torch.get_num_threads(), "env": env, "processor": device_name("cpu")}
 
 
 def start_busy(count: int, limit: float) -> list[subprocess.Popen]:
