@@ -97,7 +97,8 @@ def worker(name: str, data_dir: str) -> dict:
     from device_info import device_name
 
     env = {k: os.environ[k] for k in CONTROLLED if k in os.environ}
-    return {"seconds": seconds, "threads": torch.get_num_threads(), "env": env, "processor": device_name("cpu")}
+    threads = torch.get_num_threads()
+    return {"seconds": seconds, "threads": threads, "env": env, "processor": device_name("cpu")}
 
 
 def start_busy(count: int, limit: float) -> list[subprocess.Popen]:
