@@ -29,9 +29,11 @@ from typing import Any
 WAIT_POLICY = "PASSIVE"
 #: Intra-op threads of latency-bound CPU work (a rollout, the simulator): see :func:`latency_bound_threads`.
 LATENCY_BOUND_THREADS = 1
-#: Largest work per kernel (elements, e.g. settings x nodes x channels) counted as latency-bound:
-#: the quickstart network on the coarse mesh (8 settings at once: 1 << 18) is; the paper's network
-#: on its mesh (about 20 times more) is bound by arithmetic, where more threads pay.
+#: Largest work per kernel (elements, e.g. settings x nodes x channels) counted as latency-bound,
+#: the bound below which the fast rollout also writes its wrapper in C++. Measured latency-bound:
+#: the quickstart network on the coarse mesh, one setting at a time (1,670 x 32 = 53,440); larger
+#: work (a batch of 8 such settings, 427,520; the paper's network on its mesh) keeps torch's
+#: thread count, where more threads may pay (not measured).
 LATENCY_BOUND_ELEMENTS = 1 << 18
 #: Settings that, when the user set them, win over :data:`WAIT_POLICY`.
 USER_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
