@@ -103,3 +103,16 @@ def test_the_simulator_and_the_rollouts_run_on_one_thread(monkeypatch):
         torch.set_num_threads(before)
     assert counts["simulate"] == [1, 1]  # every step of the simulator
     assert counts["rollout"] == [1, 1]  # every step of the rollout
+
+
+def test_the_plain_rollout_sizes_a_surrogates_work_by_its_width():
+    import functools
+
+    from torch_ampn.baselines import static_plies
+    from torch_ampn.forming import AMPNSurrogate
+    from torch_ampn.rollout.plain import _width
+
+    surrogate = AMPNSurrogate(hidden_channels=8, mlp_channels=8, num_levels=1)
+    assert _width(surrogate.predict_residual) == 8
+    assert _width(functools.partial(surrogate.predict_residual, generator=None)) == 8  # rollout_surrogate's
+    assert _width(static_plies) == 1

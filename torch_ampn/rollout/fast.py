@@ -5,8 +5,10 @@ searches the contact edges and builds the features with many small eager operati
 step. :class:`FastRollout` does the same arithmetic with fixed shapes:
 
 * everything that does not change during a rollout (mesh, down and up edges with their
-  offsets for ``B`` settings, node types, components, fibres, the coarse features) is built
-  once;
+  offsets for ``B`` settings and their aggregation tables, node types, components, fibres) is
+  built once; the features, their normalisation and the position update are the plain path's
+  own functions (:func:`~torch_ampn.forming.step_features`, ``AMPNSurrogate.normalize``,
+  :func:`~torch_ampn.rollout.plain.next_positions`);
 * the contact edges of every level are those of
   :func:`~torch_ampn.transforms.component_radius_table`: on small levels every slot of its
   fixed-size table (with a validity mask), selected inside the compiled step from candidates

@@ -14,6 +14,7 @@ The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import torch
@@ -118,7 +119,13 @@ def rollout(
 
 
 def _width(predictor: Predictor) -> int:
-    """Channels per node of a surrogate's network (``predict_residual`` bound to it), else 1 (a baseline)."""
+    """Channels per node of a surrogate's network, else 1 (a baseline).
+
+    A surrogate's predictor is its bound ``predict_residual``, possibly in a ``functools.partial``
+    (as :func:`~torch_ampn.rollout.rollout_surrogate` passes it with its generator).
+    """
+    while isinstance(predictor, functools.partial):
+        predictor = predictor.func
     owner = getattr(predictor, "__self__", predictor)
     return int(getattr(getattr(owner, "model", None), "hidden_channels", 1) or 1)
 

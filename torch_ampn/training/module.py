@@ -215,7 +215,7 @@ class AMPNLightningModule(L.LightningModule):
         self.surrogate = AMPNSurrogate(**{name: self.hparams[name] for name in SURROGATE_ARGUMENTS})
         self._report: TestReport | None = None
         # the loss, through the network compiled at the first training step (kept out of the module tree)
-        object.__setattr__(self, "_loss", CompiledLoss(self.surrogate, enabled=compile_network))
+        self._loss = CompiledLoss(self.surrogate, enabled=compile_network)
         # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
         self._training_meshes: dict[str, int] | None = None
 
@@ -269,7 +269,7 @@ class AMPNLightningModule(L.LightningModule):
         device = next(self.surrogate.parameters()).device
         arguments = {name: self.hparams[name] for name in SURROGATE_ARGUMENTS}
         self.surrogate = AMPNSurrogate(**arguments).to(device)
-        object.__setattr__(self, "_loss", CompiledLoss(self.surrogate, enabled=self.hparams.compile_network))
+        self._loss = CompiledLoss(self.surrogate, enabled=self.hparams.compile_network)
 
     def fit_statistics(self, samples: Any) -> None:
         """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
