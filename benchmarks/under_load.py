@@ -33,8 +33,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Environments a workload starts with. ``AMPN_THREADS=off`` turns the package's own choice
-#: off (:func:`torch_ampn.utils.threads.configure_threads`), so ``default`` is torch as it comes and
-#: ``package`` what ``import torch_ampn`` chooses (``OMP_WAIT_POLICY=PASSIVE``).
+#: off, so ``default`` is torch as it comes and ``package`` what the package's loops do
+#: (:func:`torch_ampn.utils.threads.follow_free_cpu`: torch's spinning threads, as many as the
+#: cores other processes leave free).
 MECHANISMS: dict[str, dict[str, str]] = {
     "default": {"AMPN_THREADS": "off"},
     "passive": {"AMPN_THREADS": "off", "OMP_WAIT_POLICY": "PASSIVE"},
@@ -64,16 +65,20 @@ BUSY = "import time\nend = time.monotonic() + {limit}\nwhile time.monotonic() < 
 
 def worker(name: str, data_dir: str) -> dict:
     """Run one workload in this process; its timed seconds and thread settings."""
-    import torch_ampn  # noqa: F401  (its thread choice comes before torch's thread pool starts)
-
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import torch
+
+    from torch_ampn.utils.threads import GOVERNOR, follow_free_cpu
 
     if name == "train":
         from training_step import QuickstartCase
 
         case = QuickstartCase(data_dir, {}, num_batches=11, compile_network=False)
-        case.step(case.batches[0])  # warm-up
+        with follow_free_cpu() as threads:  # warm-up: a second of steps, as a fit's first second
+            end = time.perf_counter() + 1.0
+            while time.perf_counter() < end:
+                threads.step()
+                case.step(case.batches[0])
         seconds = case.time_steps() * 10
     elif name == "rollout":
         from rollout import build_surrogate, time_fast
@@ -98,7 +103,9 @@ def worker(name: str, data_dir: str) -> dict:
 
     env = {k: os.environ[k] for k in CONTROLLED if k in os.environ}
     threads = torch.get_num_threads()
-    return {"seconds": seconds, "threads": threads, "env": env, "processor": device_name("cpu")}
+    changes = [n for _, n in GOVERNOR.history]  # the thread counts the package's loops chose, in order
+    return {"seconds": seconds, "threads": threads, "thread_changes": changes, "env": env,
+            "processor": device_name("cpu")}  # fmt: skip
 
 
 def start_busy(count: int, limit: float) -> list[subprocess.Popen]:
@@ -211,16 +218,12 @@ def main(argv: list[str] | None = None) -> None:
         return
     # warm the compile cache outside the timed grid, however long it takes: once per kernel
     # variant (mechanisms that set Inductor's chunk size or the thread count compile kernels of
-    # their own: the thread count is written into the generated code; the package chooses its
-    # thread count inside the process, one thread for latency-bound work)
+    # their own: the thread count is written into the generated code; the package compiles on
+    # torch's count and changes it only between kernels)
     kernel_settings = ("TORCHINDUCTOR_CPP_MIN_CHUNK_SIZE", "OMP_NUM_THREADS")
 
     def kernel_variant(mechanism: str) -> tuple:
-        return (
-            ("package",)
-            if mechanism == "package"
-            else tuple(MECHANISMS[mechanism].get(k) for k in kernel_settings)
-        )
+        return tuple(MECHANISMS[mechanism].get(k) for k in kernel_settings)
 
     variants = {kernel_variant(m): m for m in reversed(args.mechanisms)}
     for workload in args.workloads:

@@ -2,11 +2,6 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from torch_ampn.utils.threads import configure_threads
-
-# Before anything imports torch: its OpenMP pool reads the wait settings when it starts.
-configure_threads()
-
 try:
     __version__ = version("torch-ampn")
 except PackageNotFoundError:  # running from a source tree without installation

@@ -30,6 +30,7 @@ from __future__ import annotations
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
+from contextlib import nullcontext
 
 import torch
 from torch import Tensor
@@ -53,7 +54,7 @@ from torch_ampn.utils.compile_fallback import EagerFallback
 from torch_ampn.utils.compile_passes import UnfuseBiasAdd
 from torch_ampn.utils.heap import retained_heap
 from torch_ampn.utils.own_code import own_code
-from torch_ampn.utils.threads import latency_bound_threads
+from torch_ampn.utils.threads import follow_free_cpu
 
 #: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
 _CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
@@ -226,7 +227,7 @@ class FastRollout:
         self.hierarchy = h
         sizes = [h.level(k).num_nodes for k in range(self.num_levels)]  # N_k of one setting
         self.num_nodes = sizes[0]
-        #: Elements of the step's typical kernel, ``B N d`` (what decides its thread count and C++ wrapper).
+        #: Elements of the step's typical kernel, ``B N d`` (what decides its C++ wrapper).
         self.elements = b * sizes[0] * getattr(surrogate.model, "hidden_channels", 1)
         dev = self.device
         graph = [torch.arange(b, device=dev).repeat_interleave(n) for n in sizes]  # [B N_k]
@@ -292,6 +293,7 @@ class FastRollout:
         # the step's callables: compiled where compile=True, each falling back to its eager code
         self._fallback = EagerFallback("the fast rollout runs eagerly")
         self._compile = compile
+        self._stepped = False  # the first step compiles (see __call__)
         self._fused, self._inputs, self._network = self._step_fused, self._step_inputs, s.model
         if compile:
             # on CUDA the compiled graphs are captured as CUDA graphs and replayed (not yet measured)
@@ -565,19 +567,23 @@ class FastRollout:
             from tqdm.auto import tqdm
 
             iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
-        # no page faults per step; many small kernels: one thread, waiting for none
-        with retained_heap(self.retain_heap and dev.type == "cpu"), latency_bound_threads(dev, self.elements):
+        # no page faults per step; spinning threads, as many as other processes leave cores
+        with retained_heap(self.retain_heap and dev.type == "cpu"), follow_free_cpu(dev) as threads:
             for t in iterator:
+                threads.step()
                 pos = pred[t - 1]
                 prev = pred[max(t - 2, 0)]  # the first step has no previous displacement
                 priors = (None, None) if prior_path is None else (prior_path[t - 1], prior_path[t])
                 inputs = (pos, prev, tool_path[t], gripper_nodes, anchor, magnitude, fiber, pos0, *priors)
                 noise = [draw() for _ in range(self.surrogate.diffusion_steps)]  # drawn once, even on a retry
-                if self.surrogate.diffusion_steps == 1:
-                    (pred[t],) = self._checked(self._fused, *inputs, noise)
-                else:
-                    du = self._residual(*self._checked(self._inputs, *inputs), noise)
-                    pred[t] = next_positions(ply, pos, du, pred[t])
+                # the first step compiles: its kernels are built for every thread torch may use
+                with threads.at_ceiling() if self._compile and not self._stepped else nullcontext():
+                    if self.surrogate.diffusion_steps == 1:
+                        (pred[t],) = self._checked(self._fused, *inputs, noise)
+                    else:
+                        du = self._residual(*self._checked(self._inputs, *inputs), noise)
+                        pred[t] = next_positions(ply, pos, du, pred[t])
+                self._stepped = True
         return pred[: steps + 1].view(steps + 1, self.batch_size, n, 3).transpose(0, 1)[:count].cpu()
 
     def _residual(self, x_dict, index_dict, e_dict, mask_dict, prev_disp, noise: list[Tensor]) -> Tensor:

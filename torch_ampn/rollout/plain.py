@@ -14,7 +14,6 @@ The predictor is any callable ``HierarchicalData -> Tensor[N, 3]`` (residual in 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 
 import torch
@@ -23,7 +22,7 @@ from torch import Tensor
 from torch_ampn.data.dataset import step_sample
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
-from torch_ampn.utils.threads import latency_bound_threads
+from torch_ampn.utils.threads import follow_free_cpu
 
 Predictor = Callable[[HierarchicalData], Tensor]
 Transform = Callable[[HierarchicalData], HierarchicalData]
@@ -101,10 +100,10 @@ def rollout(
         iterator = tqdm(iterator, desc="rollout", unit="step", leave=False)
     # edges from the initial state (ComponentRadiusGraph(positions="initial")) are built once
     static_contact = getattr(contact, "positions", "current") == "initial"
-    elements = traj.num_nodes * _width(predictor)  # [N, d]: the size of its typical kernel
-    with latency_bound_threads(device, elements):  # many small kernels: one thread, waiting for none
+    with follow_free_cpu(device) as threads:  # spinning threads, as many as other processes leave cores
         edges: list[Tensor] | None = None
         for t in iterator:
+            threads.step()
             data = step_sample(state, t, hierarchy)
             if edges is not None:
                 for level, edge_index in enumerate(edges):
@@ -116,18 +115,6 @@ def rollout(
             du = predictor(data).float()  # [N, 3]
             pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
     return pred[: steps + 1].cpu()
-
-
-def _width(predictor: Predictor) -> int:
-    """Channels per node of a surrogate's network, else 1 (a baseline).
-
-    A surrogate's predictor is its bound ``predict_residual``, possibly in a ``functools.partial``
-    (as :func:`~torch_ampn.rollout.rollout_surrogate` passes it with its generator).
-    """
-    while isinstance(predictor, functools.partial):
-        predictor = predictor.func
-    owner = getattr(predictor, "__self__", predictor)
-    return int(getattr(getattr(owner, "model", None), "hidden_channels", 1) or 1)
 
 
 def next_positions(ply: Tensor, pos: Tensor, residual: Tensor, tool_next: Tensor) -> Tensor:

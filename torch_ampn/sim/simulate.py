@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from typing import Any
 
 import torch
@@ -28,7 +29,7 @@ from torch_ampn.sim.contact import (
 from torch_ampn.sim.geometry import die_surface, punch_surface, punch_travel
 from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
 from torch_ampn.utils.own_code import own_code
-from torch_ampn.utils.threads import latency_bound_threads
+from torch_ampn.utils.threads import follow_free_cpu
 
 
 def build_mesh(cfg: StampFormingConfig) -> MultiComponentMesh:
@@ -513,8 +514,8 @@ def simulate_batch(
     else:
         processes = [explicit_process(cfg, where, force) for where, force in settings]
     mesh = build_mesh(cfg)
-    # many small kernels: one thread, waiting for none (per kernel: the coordinates of every copy)
-    with latency_bound_threads(device, elements=3 * len(processes) * mesh.num_nodes):
+    # spinning threads, as many as other processes leave cores
+    with follow_free_cpu(device) as threads:
         model = LaminateModel(cfg, mesh, processes).to(device)
         step = model.step_function(compile)
         n, copies = model.n, model.copies
@@ -533,11 +534,14 @@ def simulate_batch(
 
             steps = tqdm(steps, desc=f"simulate x{copies}", unit="step", leave=False)
         for k in steps:
+            threads.step()
             model.refresh_pairs(x)
             for sub in range(model.substeps):
                 t = ((k - 1) * model.substeps + sub + 1) * model.dt
                 travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype, device=x.device)
-                x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+                # the first call compiles: its kernels are built for every thread torch may use
+                with threads.at_ceiling() if compile and k == 1 and sub == 0 else nullcontext():
+                    x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
             if not torch.isfinite(x).all():
                 raise FloatingPointError(f"simulation diverged at step {k} (seeds {list(seeds)})")
             frames.append(x.clone())

@@ -8,6 +8,7 @@ from torch import Tensor
 
 from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming.surrogate import AMPNSurrogate
+from torch_ampn.utils.threads import GOVERNOR
 
 
 class CompiledLoss:
@@ -37,7 +38,8 @@ class CompiledLoss:
         device = data["l0"].pos.device
         rng = torch.get_rng_state(), torch.cuda.get_rng_state(device) if device.type == "cuda" else None
         try:
-            loss = self.surrogate.loss(data, network=compiled)
+            with GOVERNOR.at_ceiling():  # its kernels are built for every thread torch may use
+                loss = self.surrogate.loss(data, network=compiled)
         except Exception as err:  # noqa: BLE001 - any compiler failure: go on eager
             rank_zero_warn(
                 f"compile_network: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "

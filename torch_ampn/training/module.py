@@ -16,6 +16,7 @@ from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.rollout import rollout_rmse, rollout_surrogate
 from torch_ampn.training.baseline_rollouts import BaselineRollouts
 from torch_ampn.training.compiled_loss import CompiledLoss
+from torch_ampn.training.free_cpu import FollowFreeCpu
 from torch_ampn.training.inputs import add_training_noise, pushforward_inputs
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.report import TestReport, write_prediction
@@ -243,6 +244,14 @@ class AMPNLightningModule(L.LightningModule):
         checkpoint["rng_states"] = rng_states()
         if self._training_meshes is not None:
             checkpoint["training_meshes"] = dict(self._training_meshes)
+
+    def configure_callbacks(self) -> list:
+        """The fit's callbacks: :class:`~torch_ampn.training.free_cpu.FollowFreeCpu`.
+
+        The training steps' thread count follows the cores other processes leave free
+        (``AMPN_THREADS=off``: torch's count).
+        """
+        return [FollowFreeCpu()]
 
     def on_train_start(self) -> None:
         """Restore the random generators' states of a resumed fit (see :meth:`on_load_checkpoint`)."""

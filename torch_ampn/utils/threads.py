@@ -1,86 +1,276 @@
-"""How torch's OpenMP threads wait, chosen before torch starts its thread pool.
+"""Intra-op threads that follow the CPU other processes leave free.
 
-torch's CPU kernels run on an OpenMP pool (GNU libgomp in the Linux wheels) whose idle
-threads spin before they sleep. On a machine whose cores other processes share, a thread
-that spins at a barrier burns the core its partner needs, and a job runs tens of times
-slower: a quickstart training step 68x, a fast rollout and a simulated trajectory more than
-40x beside one busy process (benchmarks/README.md, "Speed under load").
-:func:`configure_threads` makes them sleep instead (``OMP_WAIT_POLICY=PASSIVE``) unless the
-user chose a wait policy or a spin count, before torch is imported: ``import torch_ampn``
-calls it, so the ``torch-ampn`` commands, the data generator and the benchmarks get it.
-Import ``torch_ampn`` before ``torch`` (or set the variable yourself) in your own scripts.
+torch's CPU kernels run on an OpenMP pool (GNU libgomp in the Linux wheels) whose idle threads
+spin before they sleep. On a quiet machine that is the fastest way to run many small kernels;
+when another process holds a core, a thread that spins at a barrier burns the core its partner
+needs, and a job runs tens of times slower (a quickstart training step 68x beside one busy
+process on 2 cores; benchmarks/README.md, "Speed under load"). Sleeping threads
+(``OMP_WAIT_POLICY=PASSIVE``) hold up under load but pay a wake-up per parallel region, which a
+rollout step pays hundreds of times (1.5-3.2x its quiet time, depending on the host).
 
-Sleeping threads cost a wake-up per parallel region, which latency-bound work pays hundreds of
-times per step: a rollout step and a simulator sub-step are many small kernels. Those run on
-:data:`LATENCY_BOUND_THREADS` intra-op thread (:func:`latency_bound_threads`), which waits for
-no other thread at all; training, whose large products use both cores, keeps torch's count.
-``AMPN_THREADS=off`` leaves torch as it comes (its wait policy and thread count everywhere).
+The package's loops (training steps, rollouts, the simulator's sub-steps) therefore keep torch's
+spinning threads and change their number instead: inside :func:`follow_free_cpu` every
+:data:`INTERVAL` seconds the busy time of this process's cores (``/proc/stat``) is compared with
+the process's own CPU time, and the loop runs on one thread per core that other processes leave
+free (at least one; at most the count torch had when the loop started). A lone thread waits for
+no other, so under load the work keeps its share of the CPU, and on a quiet machine it runs as
+torch does. Without ``/proc/stat`` (not Linux) nothing changes. ``AMPN_THREADS=off`` leaves
+torch's thread count alone everywhere.
+
+Results: a different thread count sums some reductions in another order, so the last bits of a
+fit or rollout can depend on when other processes ran. For bit-identical reruns use one thread
+(``OMP_NUM_THREADS=1``) or ``AMPN_THREADS=off`` on a machine nothing else uses.
 """
 
 from __future__ import annotations
 
+import math
 import os
-import sys
-from collections.abc import Iterator, MutableMapping
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-#: The wait policy set unless the user chose one.
-WAIT_POLICY = "PASSIVE"
-#: Intra-op threads of latency-bound CPU work (a rollout, the simulator): see :func:`latency_bound_threads`.
-LATENCY_BOUND_THREADS = 1
-#: Largest work per kernel (elements, e.g. settings x nodes x channels) counted as latency-bound,
-#: the bound below which the fast rollout also writes its wrapper in C++. Measured latency-bound:
-#: the quickstart network on the coarse mesh, one setting at a time (1,670 x 32 = 53,440); larger
-#: work (a batch of 8 such settings, 427,520; the paper's network on its mesh) keeps torch's
-#: thread count, where more threads may pay (not measured).
-LATENCY_BOUND_ELEMENTS = 1 << 18
-#: Settings that, when the user set them, win over :data:`WAIT_POLICY`.
-USER_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+#: Seconds between two looks at the CPU (a sample of ``/proc/stat``: 50 clock ticks on 2 cores).
+INTERVAL = 0.25
+#: Cores other processes may use before one of ours counts as taken (system daemons, ``/proc/stat``'s
+#: tick sampling): a busy process sharing 2 cores with 2 spinning threads gets about 0.67 of one.
+TOLERANCE = 0.3
+#: Consecutive looks that must agree before the count changes, so that a burst (a compile's
+#: workers, a short command) does not move it.
+CONFIRM = 2
+#: Seconds a decision stays good for a loop that starts later (a rollout after a training step).
+FRESH = 2.0
+#: The fields of a ``/proc/stat`` CPU line that count as busy: user nice system irq softirq steal
+#: (guest time is part of user already; idle and iowait are free).
+BUSY_FIELDS = (0, 1, 2, 5, 6, 7)
 
 
-def configure_threads(environ: MutableMapping[str, str] | None = None) -> str:
-    """Set ``OMP_WAIT_POLICY`` in ``environ`` (default ``os.environ``) unless told not to.
+def threads_off() -> bool:
+    """Whether ``AMPN_THREADS=off`` asks to leave torch's thread count alone."""
+    return os.environ.get("AMPN_THREADS", "").lower() == "off"
 
-    Returns what was done: ``"off"`` (``AMPN_THREADS=off``), ``"user"`` (a wait policy or
-    spin count is already set), ``"late"`` (torch is already imported: its pool has read its
-    settings, nothing is changed) or ``"wait=PASSIVE"``.
+
+class OtherLoad:
+    """Cores that other processes used between two calls, from ``/proc/stat``.
+
+    Busy time of the CPUs this process may run on, less this process's own CPU time (all its
+    threads), per second of wall time. Steal time (a VM's host running something else) counts
+    as other processes' use.
+
+    Args:
+        stat: The kernel's CPU statistics file.
+        cpus: CPU numbers to count (default: this process's affinity).
+        clock: Wall clock (seconds).
+        own_time: This process's CPU time (seconds, all threads).
     """
-    environ = os.environ if environ is None else environ
-    if environ.get("AMPN_THREADS", "").lower() == "off":
-        return "off"
-    if any(k in environ for k in USER_SETTINGS):
-        return "user"
-    if "torch" in sys.modules:
-        return "late"
-    environ["OMP_WAIT_POLICY"] = WAIT_POLICY
-    return f"wait={WAIT_POLICY}"
+
+    def __init__(
+        self,
+        stat: str = "/proc/stat",
+        cpus: set[int] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        own_time: Callable[[], float] = time.process_time,
+    ) -> None:
+        self.stat = stat
+        self.cpus = set(os.sched_getaffinity(0) if cpus is None else cpus)
+        self.clock, self.own_time = clock, own_time
+        self.ticks_per_second = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self._last: tuple[float, float, float] | None = None
+
+    @property
+    def num_cpus(self) -> int:
+        """CPUs counted."""
+        return len(self.cpus)
+
+    def busy_seconds(self) -> float | None:
+        """Busy seconds of :attr:`cpus` since boot (``None``: unreadable, or a CPU missing)."""
+        try:
+            with open(self.stat) as f:
+                lines = f.read().splitlines()
+        except OSError:
+            return None
+        busy, seen = 0, 0
+        for line in lines:
+            name, _, rest = line.partition(" ")
+            if not name.startswith("cpu") or name == "cpu" or int(name[3:]) not in self.cpus:
+                continue
+            fields = [int(v) for v in rest.split()]
+            busy += sum(fields[i] for i in BUSY_FIELDS if i < len(fields))
+            seen += 1
+        return busy / self.ticks_per_second if seen == len(self.cpus) else None
+
+    def __call__(self) -> float | None:
+        """Cores the others used since the previous call (``None`` at the first call or unreadable)."""
+        busy = self.busy_seconds()
+        sample = None if busy is None else (self.clock(), busy, self.own_time())
+        last, self._last = self._last, sample
+        if sample is None or last is None or sample[0] <= last[0]:
+            return None
+        wall, busy, own = (a - b for a, b in zip(sample, last, strict=True))
+        return max(0.0, (busy - own) / wall)
+
+
+class ThreadGovernor:
+    """Sets torch's intra-op thread count to the cores other processes leave free.
+
+    :meth:`step` is called once per step of a loop (cheap: a clock read between looks); every
+    ``interval`` seconds it looks at :class:`OtherLoad` and, after ``confirm`` looks that agree,
+    sets ``torch.set_num_threads`` to ``cores - ceil(others - tolerance)``, clamped to
+    ``[1, ceiling]``. The ceiling is torch's count when the outermost loop starts (the user's
+    choice, ``OMP_NUM_THREADS`` or the core count); a governor with a ceiling of one does nothing.
+
+    Args:
+        load: Where the others' use comes from.
+        interval: Seconds between looks.
+        tolerance: Cores others may use before one counts as taken.
+        confirm: Looks that must agree before the count changes.
+        clock: Wall clock (seconds).
+    """
+
+    def __init__(
+        self,
+        load: Callable[[], float | None] | None = None,
+        interval: float = INTERVAL,
+        tolerance: float = TOLERANCE,
+        confirm: int = CONFIRM,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.load = OtherLoad() if load is None else load
+        self.interval, self.tolerance, self.confirm, self.clock = interval, tolerance, confirm, clock
+        self.ceiling = 1
+        self.depth = 0  # loops inside one another: the outermost sets the ceiling and restores
+        #: Counts chosen, ``(wall time, threads)``, last one current (a test's and a benchmark's record).
+        self.history: deque[tuple[float, int]] = deque(maxlen=1000)
+        self._next_look = -math.inf
+        self._pending, self._streak = 0, 0
+        self._decision: tuple[float, int] | None = None  # the last look's choice: (time, threads)
+
+    @property
+    def num_cpus(self) -> int:
+        """CPUs the load is counted over."""
+        return int(getattr(self.load, "num_cpus", os.cpu_count() or 1))
+
+    def target(self, others: float) -> int:
+        """Threads for ``others`` cores used by other processes."""
+        taken = max(0, math.ceil(others - self.tolerance))
+        return max(1, min(self.ceiling, self.num_cpus - taken))
+
+    def step(self) -> int:
+        """Look at the CPU if ``interval`` has passed; the thread count in use."""
+        import torch
+
+        now = self.clock()
+        if self.ceiling <= 1 or now < self._next_look:
+            return torch.get_num_threads()
+        self._next_look = now + self.interval
+        others = self.load()
+        if others is None:
+            return torch.get_num_threads()
+        want = self.target(others)
+        self._decision = (now, want)
+        current = torch.get_num_threads()
+        if want == current:
+            self._streak = 0
+            return current
+        self._streak = self._streak + 1 if want == self._pending else 1
+        self._pending = want
+        if self._streak >= self.confirm:
+            self._set(want)
+            self._streak = 0
+        return torch.get_num_threads()
+
+    def _set(self, threads: int) -> None:
+        import torch
+
+        if threads != torch.get_num_threads():
+            torch.set_num_threads(threads)
+            self.history.append((self.clock(), threads))
+
+    def enter(self) -> int:
+        """Start a loop: the outermost takes torch's count as the ceiling and uses a fresh decision.
+
+        Returns the count to restore at :meth:`exit`.
+        """
+        import torch
+
+        before = torch.get_num_threads()
+        self.depth += 1
+        if self.depth == 1:
+            self.ceiling = before
+            decision = self._decision
+            if self.ceiling > 1 and decision is not None and self.clock() - decision[0] <= FRESH:
+                self._set(min(decision[1], self.ceiling))
+        return before
+
+    def exit(self, before: int) -> None:
+        """End a loop; the outermost restores torch's count from before it."""
+        import torch
+
+        self.depth -= 1
+        if self.depth == 0 and torch.get_num_threads() != before:
+            torch.set_num_threads(before)
+
+    @contextmanager
+    def at_ceiling(self) -> Iterator[None]:
+        """Run the block on the ceiling's count.
+
+        For a call that compiles: Inductor builds its C++ kernels for the count in use, and a
+        kernel built for one thread stays serial.
+        """
+        import torch
+
+        current = torch.get_num_threads()
+        if self.depth == 0 or current >= self.ceiling:
+            yield
+            return
+        torch.set_num_threads(self.ceiling)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(current)
+
+
+#: The process's governor: every loop of the package shares its looks and decisions.
+GOVERNOR = ThreadGovernor()
+
+
+class _Idle:
+    """What :func:`follow_free_cpu` yields where nothing is followed."""
+
+    def step(self) -> int:
+        import torch
+
+        return torch.get_num_threads()
+
+    @contextmanager
+    def at_ceiling(self) -> Iterator[None]:
+        yield
 
 
 @contextmanager
-def latency_bound_threads(device: Any = None, elements: int | None = None) -> Iterator[None]:
-    """Run the block on :data:`LATENCY_BOUND_THREADS` intra-op thread(s), then restore torch's count.
+def follow_free_cpu(device: Any = None) -> Iterator[ThreadGovernor | _Idle]:
+    """Run a loop on the threads other processes leave free; call ``.step()`` once per step.
 
-    For work made of many small kernels on the CPU (a rollout, the simulator): one thread
-    runs them without waking or waiting for another, which on 2 cores is faster than two
-    sleeping threads and, unlike two spinning ones, keeps its speed beside other busy
-    processes (benchmarks/README.md, "Speed under load"). Compiled code built inside the
-    block is built for that thread count. Nothing changes for a ``device`` other than the
-    CPU, for ``elements`` (the size of the work's typical kernel) above
-    :data:`LATENCY_BOUND_ELEMENTS`, with ``AMPN_THREADS=off``, or where torch already uses
-    no more threads.
+    Yields the process's :data:`GOVERNOR` (``.step()``, ``.at_ceiling()``); torch's count is
+    restored when the outermost such block ends. Nothing changes for a ``device`` other than
+    the CPU or with ``AMPN_THREADS=off``.
+
+    Example::
+
+        with follow_free_cpu() as threads:
+            for batch in batches:
+                threads.step()
+                train_step(batch)
     """
     import torch
 
-    off = os.environ.get("AMPN_THREADS", "").lower() == "off"
-    cpu = device is None or torch.device(device).type == "cpu"
-    large = elements is not None and elements > LATENCY_BOUND_ELEMENTS
-    before = torch.get_num_threads()
-    if off or not cpu or large or before <= LATENCY_BOUND_THREADS:
-        yield
+    if threads_off() or not (device is None or torch.device(device).type == "cpu"):
+        yield _Idle()
         return
-    torch.set_num_threads(LATENCY_BOUND_THREADS)
+    before = GOVERNOR.enter()
     try:
-        yield
+        yield GOVERNOR
     finally:
-        torch.set_num_threads(before)
+        GOVERNOR.exit(before)

@@ -1,0 +1,47 @@
+"""``FollowFreeCpu``: the training steps run on the threads other processes leave free."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from lightning.pytorch.callbacks import Callback
+
+from torch_ampn.utils.threads import follow_free_cpu
+
+
+class FollowFreeCpu(Callback):
+    """Run the fit inside :func:`~torch_ampn.utils.threads.follow_free_cpu`, one look per batch.
+
+    On the CPU, torch's spinning threads are the fastest on a quiet machine and collapse when
+    another process holds a core; this callback sets their number to the cores other processes
+    leave free, and restores torch's count when the fit ends. :class:`AMPNLightningModule`
+    adds it to every Trainer (``configure_callbacks``); ``AMPN_THREADS=off`` turns it off.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._block: Any = None
+
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        """Enter the block (on the CPU)."""
+        self._leave()
+        self._block = follow_free_cpu(pl_module.device)
+        self._threads = self._block.__enter__()
+
+    def on_train_batch_start(self, trainer: Any, pl_module: Any, batch: Any, batch_idx: int) -> None:
+        """Look at the CPU if it is time to."""
+        if self._block is not None:
+            self._threads.step()
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        """Restore torch's thread count."""
+        self._leave()
+
+    def on_exception(self, trainer: Any, pl_module: Any, exception: BaseException) -> None:
+        """Restore torch's thread count after a failed or interrupted fit too."""
+        self._leave()
+
+    def _leave(self) -> None:
+        if self._block is not None:
+            block, self._block = self._block, None
+            block.__exit__(None, None, None)
