@@ -42,9 +42,6 @@ the table takes its rollout and speed-up columns from there (run it on an idle m
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import copy
 import csv

@@ -22,9 +22,6 @@ about ``scale**2`` times more nodes in range; ``--fixed-density`` grows the lami
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import json
 import os

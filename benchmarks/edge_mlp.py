@@ -16,9 +16,6 @@ edge MLPs switched between the two forms, interleaved in one process.
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import json
 import statistics

@@ -29,9 +29,6 @@ test parts inside and outside the ranges (final shape, predicted vs true).
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import datetime
 import json

@@ -14,9 +14,6 @@ CUDA, prints a table and writes JSON.
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import json
 import platform

@@ -3,9 +3,6 @@
 python benchmarks/paper_memory.py
 """
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import torch
 
 from torch_ampn.data import HierarchyCache, step_sample

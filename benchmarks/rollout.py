@@ -28,9 +28,6 @@ and writes JSON (atomically).
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import datetime
 import json

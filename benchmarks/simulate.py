@@ -14,9 +14,6 @@ Writes JSON atomically after every row.
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import json
 import os

@@ -15,9 +15,6 @@ variant, and a rerun skips the variants already in it.
 
 from __future__ import annotations
 
-import torch_ampn  # noqa: F401  (first: it sets torch's OpenMP spin count before torch starts)
-
-# isort: split
 import argparse
 import datetime
 import json

@@ -104,8 +104,9 @@ def worker(name: str, data_dir: str) -> dict:
     env = {k: os.environ[k] for k in CONTROLLED if k in os.environ}
     threads = torch.get_num_threads()
     changes = [n for _, n in GOVERNOR.history]  # the thread counts the package's loops chose, in order
-    return {"seconds": seconds, "threads": threads, "thread_changes": changes, "env": env,
-            "processor": device_name("cpu")}  # fmt: skip
+    looks = [[round(others, 2), n] for _, others, n in GOVERNOR.looks][-60:]  # others' cores, threads
+    return {"seconds": seconds, "threads": threads, "thread_changes": changes, "last_looks": looks,
+            "env": env, "processor": device_name("cpu")}  # fmt: skip
 
 
 def start_busy(count: int, limit: float) -> list[subprocess.Popen]:

@@ -97,9 +97,9 @@ class FakeLoad:
         return self.values.pop(0) if self.values else None
 
 
-def test_the_governor_changes_the_count_after_looks_that_agree(restore_threads):
+def test_the_governor_drops_threads_at_once_and_adds_them_after_looks_that_agree(restore_threads):
     clock = Clock()
-    load = FakeLoad([1.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0])
+    load = FakeLoad([None, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # the first: the sample taken at enter()
     governor = ThreadGovernor(load, interval=0.25, confirm=2, clock=lambda: clock.now)
     torch.set_num_threads(2)
     before = governor.enter()
@@ -111,8 +111,9 @@ def test_the_governor_changes_the_count_after_looks_that_agree(restore_threads):
         seen.append(torch.get_num_threads())
         clock.now += 0.25
     assert load.looks == 7
-    # a single busy look (a burst) changes nothing; two in a row do; two quiet ones bring both back
-    assert seen == [2, 2, 2, 1, 1, 1, 2]
+    # no look before an interval has passed; a busy look takes a thread at once; a single quiet
+    # look (a lull) does not bring it back, two in a row do
+    assert seen == [2, 1, 1, 1, 1, 2, 2]
     assert [n for _, n in governor.history] == [1, 2]
     governor.exit(before)
     assert torch.get_num_threads() == 2
@@ -120,10 +121,9 @@ def test_the_governor_changes_the_count_after_looks_that_agree(restore_threads):
 
 def test_loops_inside_one_another_share_the_ceiling_and_the_outermost_restores(restore_threads):
     clock = Clock()
-    governor = ThreadGovernor(FakeLoad([1.0, 1.0]), interval=0.0, clock=lambda: clock.now)
+    governor = ThreadGovernor(FakeLoad([None, 1.0]), interval=0.0, clock=lambda: clock.now)
     torch.set_num_threads(2)
     outer = governor.enter()
-    governor.step()
     governor.step()
     assert torch.get_num_threads() == 1
     inner = governor.enter()  # e.g. a validation rollout inside a fit
@@ -135,7 +135,7 @@ def test_loops_inside_one_another_share_the_ceiling_and_the_outermost_restores(r
     assert torch.get_num_threads() == 1  # still inside the fit
     governor.exit(outer)
     assert torch.get_num_threads() == 2
-    # a loop that starts soon after takes the last decision at once; a later one does not
+    # a loop that starts soon after the last one ended takes its decision at once; a later one does not
     governor.enter()
     assert torch.get_num_threads() == 1
     governor.exit(2)
@@ -183,11 +183,12 @@ def test_follow_free_cpu_leaves_other_devices_and_off_alone(monkeypatch):
 def busy_governor(monkeypatch, restore_threads):
     """The process's governor, told at every step that another process holds a core."""
     monkeypatch.delenv("AMPN_THREADS", raising=False)
-    monkeypatch.setattr(GOVERNOR, "load", FakeLoad([1.0] * 100))
+    # per loop: the sample at its start, then busy, quiet, quiet
+    monkeypatch.setattr(GOVERNOR, "load", FakeLoad([None, 1.0, 0.0, 0.0] * 2))
     monkeypatch.setattr(GOVERNOR, "interval", 0.0)
     monkeypatch.setattr(GOVERNOR, "_decision", None)
     monkeypatch.setattr(GOVERNOR, "_streak", 0)
-    monkeypatch.setattr(GOVERNOR, "_next_look", float("-inf"))
+    monkeypatch.setattr(GOVERNOR, "_active", float("-inf"))
     torch.set_num_threads(2)
     return GOVERNOR
 
@@ -216,8 +217,8 @@ def test_the_simulator_and_the_rollouts_follow_at_every_step(monkeypatch, busy_g
     monkeypatch.setattr(GOVERNOR, "_decision", None)  # the rollout starts without the simulator's
     rollout(predictor, traj, HierarchyCache(None, max_levels=2)(traj))
     assert torch.get_num_threads() == 2
-    assert counts["simulate"] == [2, 1, 1]  # two busy looks, then one thread
-    assert counts["rollout"] == [2, 1, 1]
+    assert counts["simulate"] == [1, 1, 2]  # busy: one thread at once; two quiet looks: two again
+    assert counts["rollout"] == [1, 1, 2]
 
 
 def test_the_fit_follows_at_every_batch(busy_governor):
@@ -234,7 +235,7 @@ def test_the_fit_follows_at_every_batch(busy_governor):
     for i in range(3):
         callback.on_train_batch_start(None, pl_module, None, i)
         counts.append(torch.get_num_threads())
-    assert counts == [2, 1, 1]
+    assert counts == [1, 1, 2]
     callback.on_exception(None, pl_module, RuntimeError())  # an interrupted fit restores too
     assert torch.get_num_threads() == 2 and GOVERNOR.depth == 0
     callback.on_train_end(None, pl_module)  # once only

@@ -37,10 +37,11 @@ INTERVAL = 0.25
 #: Cores other processes may use before one of ours counts as taken (system daemons, ``/proc/stat``'s
 #: tick sampling): a busy process sharing 2 cores with 2 spinning threads gets about 0.67 of one.
 TOLERANCE = 0.3
-#: Consecutive looks that must agree before the count changes, so that a burst (a compile's
-#: workers, a short command) does not move it.
+#: Consecutive looks that must agree before the count grows, so that a lull of the other
+#: processes does not bring back threads that would spin against them. It shrinks at the first
+#: look: one step with too few threads costs a little, one with too many can cost 40x.
 CONFIRM = 2
-#: Seconds a decision stays good for a loop that starts later (a rollout after a training step).
+#: Seconds between loops (a rollout after a training step) for which the last decision holds.
 FRESH = 2.0
 #: The fields of a ``/proc/stat`` CPU line that count as busy: user nice system irq softirq steal
 #: (guest time is part of user already; idle and iowait are free).
@@ -116,16 +117,17 @@ class ThreadGovernor:
     """Sets torch's intra-op thread count to the cores other processes leave free.
 
     :meth:`step` is called once per step of a loop (cheap: a clock read between looks); every
-    ``interval`` seconds it looks at :class:`OtherLoad` and, after ``confirm`` looks that agree,
-    sets ``torch.set_num_threads`` to ``cores - ceil(others - tolerance)``, clamped to
-    ``[1, ceiling]``. The ceiling is torch's count when the outermost loop starts (the user's
-    choice, ``OMP_NUM_THREADS`` or the core count); a governor with a ceiling of one does nothing.
+    ``interval`` seconds it looks at :class:`OtherLoad` and sets ``torch.set_num_threads`` to
+    ``cores - ceil(others - tolerance)``, clamped to ``[1, ceiling]``: fewer threads at once,
+    more after ``confirm`` looks that agree. The ceiling is torch's count when the outermost
+    loop starts (the user's choice, ``OMP_NUM_THREADS`` or the core count); a governor with a
+    ceiling of one does nothing.
 
     Args:
         load: Where the others' use comes from.
         interval: Seconds between looks.
         tolerance: Cores others may use before one counts as taken.
-        confirm: Looks that must agree before the count changes.
+        confirm: Looks that must agree before the count grows.
         clock: Wall clock (seconds).
     """
 
@@ -143,9 +145,12 @@ class ThreadGovernor:
         self.depth = 0  # loops inside one another: the outermost sets the ceiling and restores
         #: Counts chosen, ``(wall time, threads)``, last one current (a test's and a benchmark's record).
         self.history: deque[tuple[float, int]] = deque(maxlen=1000)
+        #: The looks, ``(wall time, others' cores, threads in use)`` (a benchmark's record).
+        self.looks: deque[tuple[float, float, int]] = deque(maxlen=1000)
         self._next_look = -math.inf
-        self._pending, self._streak = 0, 0
-        self._decision: tuple[float, int] | None = None  # the last look's choice: (time, threads)
+        self._streak = 0  # looks in a row that asked for more threads
+        self._decision: int | None = None  # the last look's choice
+        self._active = -math.inf  # when a loop last stepped or ended
 
     @property
     def num_cpus(self) -> int:
@@ -161,22 +166,18 @@ class ThreadGovernor:
         """Look at the CPU if ``interval`` has passed; the thread count in use."""
         import torch
 
-        now = self.clock()
+        now = self._active = self.clock()
         if self.ceiling <= 1 or now < self._next_look:
             return torch.get_num_threads()
         self._next_look = now + self.interval
         others = self.load()
         if others is None:
             return torch.get_num_threads()
-        want = self.target(others)
-        self._decision = (now, want)
+        want = self._decision = self.target(others)
         current = torch.get_num_threads()
-        if want == current:
-            self._streak = 0
-            return current
-        self._streak = self._streak + 1 if want == self._pending else 1
-        self._pending = want
-        if self._streak >= self.confirm:
+        self.looks.append((now, others, current))
+        self._streak = self._streak + 1 if want > current else 0
+        if want < current or self._streak >= self.confirm:
             self._set(want)
             self._streak = 0
         return torch.get_num_threads()
@@ -189,19 +190,29 @@ class ThreadGovernor:
             self.history.append((self.clock(), threads))
 
     def enter(self) -> int:
-        """Start a loop: the outermost takes torch's count as the ceiling and uses a fresh decision.
+        """Start a loop: the outermost takes torch's count as the ceiling.
 
-        Returns the count to restore at :meth:`exit`.
+        Soon after another loop (within :data:`FRESH` seconds) it starts on that loop's last
+        decision; else it starts on torch's count and takes a first sample, so that the first
+        look, ``interval`` seconds on, can decide. Returns the count to restore at :meth:`exit`.
         """
         import torch
 
         before = torch.get_num_threads()
         self.depth += 1
-        if self.depth == 1:
-            self.ceiling = before
-            decision = self._decision
-            if self.ceiling > 1 and decision is not None and self.clock() - decision[0] <= FRESH:
-                self._set(min(decision[1], self.ceiling))
+        if self.depth > 1:
+            return before
+        self.ceiling = before
+        if before <= 1:
+            return before
+        now = self.clock()
+        if now - self._active <= FRESH and self._decision is not None:
+            self._set(min(self._decision, self.ceiling))
+        else:
+            self.load()  # the start of the first look's window
+            self._next_look = now + self.interval
+            self._streak = 0
+        self._active = now
         return before
 
     def exit(self, before: int) -> None:
@@ -209,6 +220,7 @@ class ThreadGovernor:
         import torch
 
         self.depth -= 1
+        self._active = self.clock()
         if self.depth == 0 and torch.get_num_threads() != before:
             torch.set_num_threads(before)
 
