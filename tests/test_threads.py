@@ -51,12 +51,14 @@ def test_other_load_is_the_busy_time_less_this_processs_own(tmp_path):
 
 def test_other_load_counts_only_this_processs_cpus_and_says_when_it_cannot(tmp_path):
     stat, clock = tmp_path / "stat", Clock()
-    load = OtherLoad(str(stat), cpus={1}, clock=lambda: clock.now, own_time=lambda: clock.cpu)
-    load.ticks_per_second = 100
     _write(stat, u0=0, u1=0)
-    load()
-    _write(stat, u0=100, u1=50)  # cpu0's 100 ticks are another CPU's
-    clock.now += 1.0
+    load = OtherLoad(str(stat), cpus={1}, clock=lambda: clock.now, own_time=lambda: clock.cpu)
+    load.ticks_per_second = 100  # the first sample: when it is made
+    _write(stat, u0=100, u1=5)  # cpu0's 100 ticks are another CPU's
+    clock.now += 0.05
+    assert load() is None  # too short a window: it goes on
+    _write(stat, u0=100, u1=50)
+    clock.now += 0.95
     assert load() == pytest.approx(0.5)
     missing = OtherLoad(str(stat), cpus={0, 5}, clock=lambda: clock.now, own_time=lambda: clock.cpu)
     assert missing.busy_seconds() is None  # cpu5 is not in the file
@@ -99,7 +101,7 @@ class FakeLoad:
 
 def test_the_governor_drops_threads_at_once_and_adds_them_after_looks_that_agree(restore_threads):
     clock = Clock()
-    load = FakeLoad([None, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # the first: the sample taken at enter()
+    load = FakeLoad([1.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     governor = ThreadGovernor(load, interval=0.25, confirm=2, clock=lambda: clock.now)
     torch.set_num_threads(2)
     before = governor.enter()
@@ -111,9 +113,9 @@ def test_the_governor_drops_threads_at_once_and_adds_them_after_looks_that_agree
         seen.append(torch.get_num_threads())
         clock.now += 0.25
     assert load.looks == 7
-    # no look before an interval has passed; a busy look takes a thread at once; a single quiet
-    # look (a lull) does not bring it back, two in a row do
-    assert seen == [2, 1, 1, 1, 1, 2, 2]
+    # one look per interval, the first at the first step; a busy look takes a thread at once; a
+    # single quiet look (a lull) does not bring it back, two in a row do
+    assert seen == [1, 1, 1, 1, 2, 2, 2]
     assert [n for _, n in governor.history] == [1, 2]
     governor.exit(before)
     assert torch.get_num_threads() == 2
@@ -121,7 +123,7 @@ def test_the_governor_drops_threads_at_once_and_adds_them_after_looks_that_agree
 
 def test_loops_inside_one_another_share_the_ceiling_and_the_outermost_restores(restore_threads):
     clock = Clock()
-    governor = ThreadGovernor(FakeLoad([None, 1.0]), interval=0.0, clock=lambda: clock.now)
+    governor = ThreadGovernor(FakeLoad([1.0]), interval=0.0, clock=lambda: clock.now)
     torch.set_num_threads(2)
     outer = governor.enter()
     governor.step()
@@ -183,8 +185,8 @@ def test_follow_free_cpu_leaves_other_devices_and_off_alone(monkeypatch):
 def busy_governor(monkeypatch, restore_threads):
     """The process's governor, told at every step that another process holds a core."""
     monkeypatch.delenv("AMPN_THREADS", raising=False)
-    # per loop: the sample at its start, then busy, quiet, quiet
-    monkeypatch.setattr(GOVERNOR, "load", FakeLoad([None, 1.0, 0.0, 0.0] * 2))
+    # per loop: busy, quiet, quiet
+    monkeypatch.setattr(GOVERNOR, "load", FakeLoad([1.0, 0.0, 0.0] * 2))
     monkeypatch.setattr(GOVERNOR, "interval", 0.0)
     monkeypatch.setattr(GOVERNOR, "_decision", None)
     monkeypatch.setattr(GOVERNOR, "_streak", 0)

@@ -65,6 +65,11 @@ class OtherLoad:
         cpus: CPU numbers to count (default: this process's affinity).
         clock: Wall clock (seconds).
         own_time: This process's CPU time (seconds, all threads).
+        min_window: Shortest wall time (seconds) a value is given for: a shorter window holds
+            too few clock ticks, and is extended to the next call instead.
+
+    The first sample is taken when it is made (at import for the package's governor), so that
+    a loop's first look sees the time since then.
     """
 
     def __init__(
@@ -73,12 +78,14 @@ class OtherLoad:
         cpus: set[int] | None = None,
         clock: Callable[[], float] = time.monotonic,
         own_time: Callable[[], float] = time.process_time,
+        min_window: float = 0.1,
     ) -> None:
         self.stat = stat
         self.cpus = set(os.sched_getaffinity(0) if cpus is None else cpus)
-        self.clock, self.own_time = clock, own_time
+        self.clock, self.own_time, self.min_window = clock, own_time, min_window
         self.ticks_per_second = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
         self._last: tuple[float, float, float] | None = None
+        self._last = self._sample()
 
     @property
     def num_cpus(self) -> int:
@@ -102,12 +109,21 @@ class OtherLoad:
             seen += 1
         return busy / self.ticks_per_second if seen == len(self.cpus) else None
 
-    def __call__(self) -> float | None:
-        """Cores the others used since the previous call (``None`` at the first call or unreadable)."""
+    def _sample(self) -> tuple[float, float, float] | None:
         busy = self.busy_seconds()
-        sample = None if busy is None else (self.clock(), busy, self.own_time())
-        last, self._last = self._last, sample
-        if sample is None or last is None or sample[0] <= last[0]:
+        return None if busy is None else (self.clock(), busy, self.own_time())
+
+    def __call__(self) -> float | None:
+        """Cores the others used since the previous sample.
+
+        ``None`` where there is none yet, the window is shorter than ``min_window`` (it goes on
+        to the next call) or the statistics cannot be read.
+        """
+        last = self._last
+        if last is not None and self.clock() - last[0] < self.min_window:
+            return None
+        sample = self._last = self._sample()
+        if sample is None or last is None:
             return None
         wall, busy, own = (a - b for a, b in zip(sample, last, strict=True))
         return max(0.0, (busy - own) / wall)
@@ -193,8 +209,8 @@ class ThreadGovernor:
         """Start a loop: the outermost takes torch's count as the ceiling.
 
         Soon after another loop (within :data:`FRESH` seconds) it starts on that loop's last
-        decision; else it starts on torch's count and takes a first sample, so that the first
-        look, ``interval`` seconds on, can decide. Returns the count to restore at :meth:`exit`.
+        decision; else its first step looks at once, at the time since the last sample (the
+        import or an earlier loop). Returns the count to restore at :meth:`exit`.
         """
         import torch
 
@@ -209,8 +225,7 @@ class ThreadGovernor:
         if now - self._active <= FRESH and self._decision is not None:
             self._set(min(self._decision, self.ceiling))
         else:
-            self.load()  # the start of the first look's window
-            self._next_look = now + self.interval
+            self._next_look = -math.inf
             self._streak = 0
         self._active = now
         return before
