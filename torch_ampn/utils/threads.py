@@ -14,8 +14,17 @@ spinning threads and change their number instead: inside :func:`follow_free_cpu`
 the process's own CPU time, and the loop runs on one thread per core that other processes leave
 free (at least one; at most the count torch had when the loop started). A lone thread waits for
 no other, so under load the work keeps its share of the CPU, and on a quiet machine it runs as
-torch does. Without ``/proc/stat`` (not Linux) nothing changes. ``AMPN_THREADS=off`` leaves
-torch's thread count alone everywhere.
+torch does. Fewer threads are taken at the first busy look, more only after :data:`CONFIRM`
+quiet ones; looks happen between steps, and a loop's first step looks at once (at the time since
+the previous sample). Without ``/proc/stat`` (not Linux) nothing changes. ``AMPN_THREADS=off``
+leaves torch's thread count alone everywhere.
+
+Compiled code: Inductor builds a CPU kernel for the thread count in use when it compiles. Built
+on all the cores' count, its parallel regions take their size from torch's count at run time;
+built on one thread, it stays serial. So the package's calls that compile run on the ceiling's
+count (:meth:`ThreadGovernor.at_ceiling`). Where torch's count differs from ``os.cpu_count()``
+(a container's CPU set, ``OMP_NUM_THREADS``), Inductor writes the count into the kernel, and
+compiled kernels keep it.
 
 Results: a different thread count sums some reductions in another order, so the last bits of a
 fit or rollout can depend on when other processes ran. For bit-identical reruns use one thread
