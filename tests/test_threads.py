@@ -73,6 +73,27 @@ def test_the_real_proc_stat_is_read():
     assert OtherLoad().busy_seconds() > 0
 
 
+def test_a_compiling_call_runs_on_the_ceiling_and_its_time_is_not_looked_at(tmp_path, restore_threads):
+    stat, clock = tmp_path / "stat", Clock()
+    _write(stat, u0=0, u1=0)
+    load = OtherLoad(str(stat), clock=lambda: clock.now, own_time=lambda: clock.cpu, cpus={0, 1})
+    load.ticks_per_second = 100
+    governor = ThreadGovernor(load, interval=0.25, clock=lambda: clock.now)
+    torch.set_num_threads(2)
+    before = governor.enter()
+    torch.set_num_threads(1)  # as after a busy look
+    with governor.at_ceiling():
+        assert torch.get_num_threads() == 2
+        _write(stat, u0=150, u1=150)  # the compiler's workers: 2 busy cores for 1.5 s
+        clock.now += 1.5
+    assert torch.get_num_threads() == 1
+    _write(stat, u0=160, u1=150)  # then 0.1 s of this process's own work
+    clock.now, clock.cpu = clock.now + 0.25, clock.cpu + 0.1
+    governor.step()
+    assert [round(others, 6) for _, others, _ in governor.looks] == [0.0]  # the compile's 1.5 s left out
+    governor.exit(before)
+
+
 @pytest.mark.parametrize(
     "cpus, ceiling, others, threads",
     [(2, 2, 0.0, 2), (2, 2, 0.3, 2), (2, 2, 0.31, 1), (2, 2, 0.67, 1), (2, 2, 1.9, 1), (2, 2, 3.0, 1),

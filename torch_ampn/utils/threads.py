@@ -122,6 +122,10 @@ class OtherLoad:
         busy = self.busy_seconds()
         return None if busy is None else (self.clock(), busy, self.own_time())
 
+    def restart(self) -> None:
+        """Start a new window now (the time before it is not counted)."""
+        self._last = self._sample()
+
     def __call__(self) -> float | None:
         """Cores the others used since the previous sample.
 
@@ -253,19 +257,26 @@ class ThreadGovernor:
         """Run the block on the ceiling's count.
 
         For a call that compiles: Inductor builds its C++ kernels for the count in use, and a
-        kernel built for one thread stays serial.
+        kernel built for one thread stays serial. The next look counts from the block's end, so
+        that the compiler's worker processes do not count as others.
         """
         import torch
 
-        current = torch.get_num_threads()
-        if self.depth == 0 or current >= self.ceiling:
+        if self.depth == 0:
             yield
             return
-        torch.set_num_threads(self.ceiling)
+        current = torch.get_num_threads()
+        if current < self.ceiling:
+            torch.set_num_threads(self.ceiling)
         try:
             yield
         finally:
-            torch.set_num_threads(current)
+            if current < self.ceiling:
+                torch.set_num_threads(current)
+            restart = getattr(self.load, "restart", None)
+            if restart is not None:
+                restart()
+                self._next_look = self.clock() + self.interval
 
 
 #: The process's governor: every loop of the package shares its looks and decisions.
