@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from typing import Any
 
 from lightning.pytorch.callbacks import Callback
@@ -20,17 +21,17 @@ class FollowFreeCpu(Callback):
 
     def __init__(self) -> None:
         super().__init__()
-        self._block: Any = None
+        self._block = ExitStack()
+        self._threads: Any = None  # the governor while a fit runs
 
     def on_train_start(self, trainer: Any, pl_module: Any) -> None:
         """Enter the block (on the CPU)."""
-        self._leave()
-        self._block = follow_free_cpu(pl_module.device)
-        self._threads = self._block.__enter__()
+        self._block.close()
+        self._threads = self._block.enter_context(follow_free_cpu(pl_module.device))
 
     def on_train_batch_start(self, trainer: Any, pl_module: Any, batch: Any, batch_idx: int) -> None:
         """Look at the CPU if it is time to."""
-        if self._block is not None:
+        if self._threads is not None:
             self._threads.step()
 
     def on_train_end(self, trainer: Any, pl_module: Any) -> None:
@@ -42,6 +43,5 @@ class FollowFreeCpu(Callback):
         self._leave()
 
     def _leave(self) -> None:
-        if self._block is not None:
-            block, self._block = self._block, None
-            block.__exit__(None, None, None)
+        self._threads = None
+        self._block.close()

@@ -41,6 +41,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import torch
+
 #: Seconds between two looks at the CPU (a sample of ``/proc/stat``: 50 clock ticks on 2 cores).
 INTERVAL = 0.25
 #: Cores other processes may use before one of ours counts as taken (system daemons, ``/proc/stat``'s
@@ -93,8 +95,7 @@ class OtherLoad:
         self.cpus = set(os.sched_getaffinity(0) if cpus is None else cpus)
         self.clock, self.own_time, self.min_window = clock, own_time, min_window
         self.ticks_per_second = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-        self._last: tuple[float, float, float] | None = None
-        self._last = self._sample()
+        self._last: tuple[float, float, float] | None = self._sample()
 
     @property
     def num_cpus(self) -> int:
@@ -193,8 +194,6 @@ class ThreadGovernor:
 
     def step(self) -> int:
         """Look at the CPU if ``interval`` has passed; the thread count in use."""
-        import torch
-
         now = self._active = self.clock()
         if self.ceiling <= 1 or now < self._next_look:
             return torch.get_num_threads()
@@ -212,8 +211,6 @@ class ThreadGovernor:
         return torch.get_num_threads()
 
     def _set(self, threads: int) -> None:
-        import torch
-
         if threads != torch.get_num_threads():
             torch.set_num_threads(threads)
             self.history.append((self.clock(), threads))
@@ -225,8 +222,6 @@ class ThreadGovernor:
         decision; else its first step looks at once, at the time since the last sample (the
         import or an earlier loop). Returns the count to restore at :meth:`exit`.
         """
-        import torch
-
         before = torch.get_num_threads()
         self.depth += 1
         if self.depth > 1:
@@ -245,8 +240,6 @@ class ThreadGovernor:
 
     def exit(self, before: int) -> None:
         """End a loop; the outermost restores torch's count from before it."""
-        import torch
-
         self.depth -= 1
         self._active = self.clock()
         if self.depth == 0 and torch.get_num_threads() != before:
@@ -260,8 +253,6 @@ class ThreadGovernor:
         kernel built for one thread stays serial. The next look counts from the block's end, so
         that the compiler's worker processes do not count as others.
         """
-        import torch
-
         if self.depth == 0:
             yield
             return
@@ -287,8 +278,6 @@ class _Idle:
     """What :func:`follow_free_cpu` yields where nothing is followed."""
 
     def step(self) -> int:
-        import torch
-
         return torch.get_num_threads()
 
     @contextmanager
@@ -311,8 +300,6 @@ def follow_free_cpu(device: Any = None) -> Iterator[ThreadGovernor | _Idle]:
                 threads.step()
                 train_step(batch)
     """
-    import torch
-
     if threads_off() or not (device is None or torch.device(device).type == "cpu"):
         yield _Idle()
         return
