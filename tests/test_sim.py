@@ -124,8 +124,9 @@ def test_a_solver_step_runs_where_the_model_is():
     x, v = model.x0.clone(), torch.zeros_like(model.x0)
     model.refresh_pairs(x)
     travel = torch.tensor(1.0, dtype=x.dtype, device=x.device)
-    x, v = model.step_function()(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+    x, v, work = model.step_function()(x, v, travel, model.pairs_lower, model.pair_friction_cap)
     assert x.device.type == "meta" and x.shape == (2 * model.n, 3) and v.shape == x.shape
+    assert work.device.type == "meta" and work.shape == (2, 6)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")

@@ -46,6 +46,13 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
         f.write(text)
 
 
+def atomic_savefig(fig: object, path: str | os.PathLike, dpi: int = 110) -> None:
+    """``fig.savefig(path)`` (a matplotlib figure; the format from the suffix) through a temporary file."""
+    path = Path(path)
+    with _atomic_file(path, "wb") as f:
+        fig.savefig(f, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+
+
 @contextlib.contextmanager
 def atomic_folder(folder: str | os.PathLike, prefix: str = ".tmp-") -> Iterator[Path]:
     """A temporary folder beside ``folder`` to write into; it replaces ``folder`` when the block ends.

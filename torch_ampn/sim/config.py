@@ -8,7 +8,12 @@ from typing import Any
 
 #: Settings added after datasets were first written, with the default that reproduces the
 #: physics before them (omitted from :meth:`StampFormingConfig.to_dict` at that value).
-ADDED_LATER: dict[str, Any] = {"gripper_clamp_radius": 0.0}
+ADDED_LATER: dict[str, Any] = {
+    "gripper_clamp_radius": 0.0,
+    "matrix_viscosity": 0.0,
+    "bending_viscosity": 0.0,
+    "contact_damping": 0.0,
+}
 #: The default material until 2026-12-02 (data version 1): pass these to reproduce data made
 #: before, e.g. ``StampFormingConfig(**MATERIAL_V1)`` or ``--simulator`` with them.
 MATERIAL_V1: dict[str, float] = {
@@ -38,7 +43,12 @@ class StampFormingConfig:
 
     Dynamics: explicit (semi-implicit Euler) time integration with lumped nodal masses
     ``areal_mass`` (t/mm^2, i.e. N s^2/mm^3; scaled up from the physical ~1e-9, as explicit
-    FEM codes do) and mass-proportional viscous ``damping`` (1/s). ``substeps`` per saved
+    FEM codes do), mass-proportional viscous ``damping`` (1/s), which resists every motion, and
+    the damping of deformation only: ``matrix_viscosity`` (N s/mm, a Kelvin-Voigt stress on the
+    transverse and shear strain rates: the molten matrix) and ``bending_viscosity`` (N mm s, on
+    the bending rate); ``contact_damping`` damps the normal motion of closed penalty contacts,
+    as a fraction of the critical damping of the penalty spring on the node's mass (explicit
+    codes' contact damping, against chatter). ``substeps`` per saved
     step is chosen from the stability limit (``time_step_safety`` times the critical step)
     when ``None``; a fixed value that is unstable is refused. The physics does not depend
     on ``substeps``, so refining it converges.
@@ -86,6 +96,9 @@ class StampFormingConfig:
     friction_ply: float = 0.2
     areal_mass: float = 6e-6
     damping: float = 20.0
+    matrix_viscosity: float = 0.0
+    bending_viscosity: float = 0.0
+    contact_damping: float = 0.0
     time_step_safety: float = 0.6
 
     meta: dict = field(default_factory=dict)
@@ -160,6 +173,12 @@ class StampFormingConfig:
             (self.duration > 0 and self.stroke >= 0, "duration must be positive and stroke non-negative"),
             (0 < self.dome_flat_top < 1, "dome_flat_top must be in (0, 1)"),
             (self.damping >= 0, "damping must be non-negative"),
+            (self.matrix_viscosity >= 0, "matrix_viscosity must be non-negative"),
+            (0 <= self.contact_damping <= 1, "contact_damping must be a fraction of critical in [0, 1]"),
+            (
+                self.bending_viscosity == 0 or (self.bending_viscosity > 0 and self.bending_stiffness > 0),
+                "bending_viscosity must be non-negative, and positive only with a positive bending_stiffness",
+            ),
             (self.gripper_clamp_radius >= 0, "gripper_clamp_radius must be non-negative"),
         ]
         for ok, msg in checks:

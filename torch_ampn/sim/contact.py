@@ -81,6 +81,24 @@ def nearest_nodes(query: Tensor, target: Tensor, chunk: int = 4096) -> Tensor:
     return torch.cat(out)
 
 
+def ply_on_ply_normal(
+    x: Tensor, upper: Tensor, lower: Tensor, normals: Tensor, thickness: float, stiffness: float
+) -> tuple[Tensor, Tensor]:
+    """Normal force magnitude ``[M]`` (N) and unit normal ``[M, 3]`` of every ply-on-ply pair.
+
+    Each ``upper[m]`` node must stay ``thickness`` above the tangent plane of its partner
+    ``lower[m]`` (a nearby node of the ply below, with unit normal ``normals[lower[m]]``).
+    Penetrations deeper than twice the thickness are ignored (wrong partner). The penalty
+    energy of a pair is ``f_n^2 / (2 stiffness)``.
+    """
+    n = normals[lower]  # [M, 3]
+    gap = ((x[upper] - x[lower]) * n).sum(1) - thickness
+    # A node more than one thickness "through" its partner's plane has a wrong partner (a
+    # fold, or a partner on the other side of a wrinkle): no force rather than a huge one.
+    pen = (-gap).clamp_min(0.0)
+    return stiffness * torch.where(pen < 2.0 * thickness, pen, torch.zeros_like(pen)), n
+
+
 def ply_on_ply_contact(
     x: Tensor,
     v: Tensor,
@@ -91,25 +109,38 @@ def ply_on_ply_contact(
     stiffness: float,
     mu: float,
     max_coeff: Tensor,
-) -> Tensor:
+    damping: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Node-to-surface penalty contact with friction between pairs of stacked plies.
 
-    Each ``upper[m]`` node must stay ``thickness`` above the tangent plane of its partner
-    ``lower[m]`` (a nearby node of the ply below, with unit normal ``normals[lower[m]]``).
-    Penetrations deeper than twice the thickness are ignored (wrong partner).
-    ``max_coeff`` ``[M, 1]`` caps the friction coefficient (see :func:`smooth_friction`).
+    The normal force is :func:`ply_on_ply_normal`'s; ``max_coeff`` ``[M, 1]`` caps the
+    friction coefficient (see :func:`smooth_friction`); ``damping`` ``[M, 1]`` (N s/mm), if
+    given, resists the normal relative velocity of the pairs in contact (contact damping).
 
     Returns:
-        Forces ``[N, 3]`` (equal and opposite on the two nodes of a pair).
+        Normal, friction and damping forces ``[N, 3]`` each (equal and opposite on the two nodes
+        of a pair).
     """
-    n = normals[lower]  # [M, 3]
-    gap = ((x[upper] - x[lower]) * n).sum(1) - thickness
-    # A node more than one thickness "through" its partner's plane has a wrong partner (a
-    # fold, or a partner on the other side of a wrinkle): no force rather than a huge one.
-    pen = (-gap).clamp_min(0.0)
-    f_n = stiffness * torch.where(pen < 2.0 * thickness, pen, torch.zeros_like(pen))
-    f = f_n[:, None] * n + smooth_friction(f_n, v[upper] - v[lower], n, mu, max_coeff)
-    out = torch.zeros_like(x)
-    out.index_add_(0, upper, f)
-    out.index_add_(0, lower, -f)
-    return out
+    f_n, n = ply_on_ply_normal(x, upper, lower, normals, thickness, stiffness)
+    v_rel = v[upper] - v[lower]
+    parts = [f_n[:, None] * n, smooth_friction(f_n, v_rel, n, mu, max_coeff)]
+    if damping is not None:
+        parts.append(contact_damping(f_n, v_rel, n, damping))
+    out = [torch.zeros_like(x).index_add_(0, upper, f).index_add_(0, lower, -f) for f in parts]
+    return out[0], out[1], out[2] if damping is not None else torch.zeros_like(x)
+
+
+def contact_damping(f_normal: Tensor, v_rel: Tensor, normal: Tensor, coeff: Tensor) -> Tensor:
+    """Viscous contact damping ``-c (v_rel . n) n`` where the contact is closed (``f_normal > 0``).
+
+    As explicit codes damp penalty contact (a fraction of the critical damping of the penalty
+    spring on the node's mass), so that nodes do not chatter against a surface.
+
+    Args:
+        f_normal: Normal force magnitude ``[M]``; zero where the contact is open.
+        v_rel: Relative velocity ``[M, 3]``.
+        normal: Unit normals ``[M, 3]``.
+        coeff: Damping coefficients ``[M, 1]`` (N s/mm).
+    """
+    closed = (f_normal > 0).to(v_rel.dtype)[:, None]
+    return -(closed * coeff) * (v_rel * normal).sum(1, keepdim=True) * normal

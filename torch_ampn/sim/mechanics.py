@@ -24,6 +24,10 @@ class OrthotropicMembrane:
         fiber_angle: Fibre angle of every triangle in radians, ``[F]``.
         fiber, transverse, shear: Stiffnesses :math:`C_f, C_t, C_s` in N/mm.
         compression_ratio: Fibre stiffness factor under compression.
+        viscosity: Matrix viscosity :math:`\eta` in N s/mm (viscosity times ply thickness): a
+            Kelvin-Voigt stress :math:`\eta \dot E` on the transverse and shear strain rates,
+            with the dissipation potential :math:`A_0 \eta (\tfrac12 \dot E_{bb}^2 + \dot E_{ab}^2)`
+            (:meth:`viscous_forces`). It resists deformation of the matrix, never rigid motion.
     """
 
     def __init__(
@@ -35,7 +39,9 @@ class OrthotropicMembrane:
         transverse: float,
         shear: float,
         compression_ratio: float,
+        viscosity: float = 0.0,
     ) -> None:
+        self.viscosity = viscosity
         self.tri = triangles
         self.tri_flat = triangles.t().reshape(-1)  # [3F]: all first corners, then second, third
         x0, x1, x2 = (ref_xy[triangles[:, i]] for i in range(3))
@@ -49,6 +55,7 @@ class OrthotropicMembrane:
         self.alpha = alpha.t()[:, :, None]  # [2, F, 1]
         self.beta = beta.t()[:, :, None]
         self.c = (fiber, transverse, shear, compression_ratio)
+        self.num_nodes = ref_xy.size(0)
 
     def strains(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Fibre-frame vectors ``F a``, ``F b`` ``[F, 3]`` and Green strains ``E_aa, E_bb, E_ab`` ``[F]``."""
@@ -61,6 +68,15 @@ class OrthotropicMembrane:
         e_ab = 0.5 * (fa * fb).sum(1)
         return fa, fb, e_aa, e_bb, e_ab
 
+    def _corner_forces(self, fa: Tensor, fb: Tensor, s_aa: Tensor, s_bb: Tensor, s_ab: Tensor) -> Tensor:
+        """Nodal forces ``[N, 3]`` of fibre-frame stresses ``s_aa, s_bb, s_ab`` ``[F]`` (``-dW/dx``)."""
+        p = (self.area * s_aa)[:, None] * fa + (self.area * s_ab)[:, None] * fb
+        q = (self.area * s_bb)[:, None] * fb + (self.area * s_ab)[:, None] * fa
+        f1 = -(p * self.alpha[0] + q * self.beta[0])
+        f2 = -(p * self.alpha[1] + q * self.beta[1])
+        per_corner = torch.cat([-f1 - f2, f1, f2])  # [3F, 3] in the order of tri_flat
+        return fa.new_zeros(self.num_nodes, 3).index_add_(0, self.tri_flat, per_corner)
+
     def forces(self, x: Tensor) -> Tensor:
         """Nodal forces ``[N, 3]`` at positions ``x`` ``[N, 3]``.
 
@@ -70,19 +86,37 @@ class OrthotropicMembrane:
         cf, ct, cs, comp = self.c
         fa, fb, e_aa, e_bb, e_ab = self.strains(x)
         s_aa = torch.where(e_aa < 0, comp * cf, cf) * e_aa
-        p = (self.area * s_aa)[:, None] * fa + (self.area * cs * e_ab)[:, None] * fb
-        q = (self.area * ct * e_bb)[:, None] * fb + (self.area * cs * e_ab)[:, None] * fa
-        f1 = -(p * self.alpha[0] + q * self.beta[0])
-        f2 = -(p * self.alpha[1] + q * self.beta[1])
-        per_corner = torch.cat([-f1 - f2, f1, f2])  # [3F, 3] in the order of tri_flat
-        return torch.zeros_like(x).index_add_(0, self.tri_flat, per_corner)
+        return self._corner_forces(fa, fb, s_aa, ct * e_bb, cs * e_ab)
 
-    def energy(self, x: Tensor) -> Tensor:
-        """Total membrane energy (N mm), used by tests to check the forces."""
+    def strain_rates(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``F a``, ``F b`` ``[F, 3]`` and the transverse and shear strain rates ``dE_bb, dE_ab`` ``[F]``."""
+        fa, fb, _, _, _ = self.strains(x)
+        v0 = v[self.tri[:, 0]]
+        w1, w2 = v[self.tri[:, 1]] - v0, v[self.tri[:, 2]] - v0
+        dfa = self.alpha[0] * w1 + self.alpha[1] * w2
+        dfb = self.beta[0] * w1 + self.beta[1] * w2
+        return fa, fb, (fb * dfb).sum(1), 0.5 * ((fa * dfb).sum(1) + (fb * dfa).sum(1))
+
+    def viscous_forces(self, x: Tensor, v: Tensor) -> Tensor:
+        """Matrix-viscosity forces ``[N, 3]`` at positions ``x`` and velocities ``v`` ``[N, 3]``.
+
+        ``-dD/dv`` of the dissipation potential ``D = A_0 eta (dE_bb^2 / 2 + dE_ab^2)``; their
+        power ``f . v = -2 D`` is never positive.
+        """
+        fa, fb, r_bb, r_ab = self.strain_rates(x, v)
+        eta = self.viscosity
+        return self._corner_forces(fa, fb, torch.zeros_like(r_bb), eta * r_bb, eta * r_ab)
+
+    def cell_energy(self, x: Tensor) -> Tensor:
+        """Membrane energy of every triangle ``[F]`` (N mm)."""
         cf, ct, cs, comp = self.c
         _, _, e_aa, e_bb, e_ab = self.strains(x)
         c_aa = torch.where(e_aa < 0, comp * cf, cf)
-        return (self.area * (0.5 * c_aa * e_aa**2 + 0.5 * ct * e_bb**2 + cs * e_ab**2)).sum()
+        return self.area * (0.5 * c_aa * e_aa**2 + 0.5 * ct * e_bb**2 + cs * e_ab**2)
+
+    def energy(self, x: Tensor) -> Tensor:
+        """Total membrane energy (N mm), used by tests to check the forces."""
+        return self.cell_energy(x).sum()
 
 
 def cotan_weights(ref_xy: Tensor, triangles: Tensor, num_nodes: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -123,10 +157,16 @@ class QuadraticBending:
     Laplacian :math:`L` of the flat reference mesh. It vanishes on every rigid motion (and
     every affine map) of the flat sheet and measures squared mean curvature under bending;
     the forces :math:`-k L A^{-1} L x` are linear in :math:`x` (``L`` is symmetric).
+
+    ``viscosity`` :math:`\eta_b` (N mm s) adds the bending-rate forces :math:`-\eta_b L A^{-1} L v`
+    (:meth:`viscous_forces`): a damping of bending (stiffness-proportional), none of rigid motion.
     """
 
-    def __init__(self, ref_xy: Tensor, triangles: Tensor, interior: Tensor, stiffness: float) -> None:
+    def __init__(
+        self, ref_xy: Tensor, triangles: Tensor, interior: Tensor, stiffness: float, viscosity: float = 0.0
+    ) -> None:
         n = ref_xy.size(0)
+        self.rate_ratio = viscosity / stiffness if stiffness > 0 else 0.0  # s: eta_b / k
         (self.row, self.col), self.weight, area = cotan_weights(ref_xy, triangles, n)
         self.weight_col = self.weight[:, None]  # [E, 1]
         self.degree = torch.zeros(n, dtype=ref_xy.dtype).index_add_(0, self.row, self.weight)[
@@ -135,6 +175,8 @@ class QuadraticBending:
         self.scale = (torch.where(interior, 1.0 / area.clamp_min(1e-12), torch.zeros_like(area)) * stiffness)[
             :, None
         ]
+        if viscosity > 0 and stiffness <= 0:
+            raise ValueError("QuadraticBending: a bending viscosity needs a positive bending stiffness")
 
     def laplacian(self, x: Tensor) -> Tensor:
         """``L x`` ``[N, 3]`` for ``x`` ``[N, 3]``."""
@@ -144,10 +186,18 @@ class QuadraticBending:
         """Nodal forces ``[N, 3]``."""
         return -self.laplacian(self.scale * self.laplacian(x))
 
+    def viscous_forces(self, v: Tensor) -> Tensor:
+        """Bending-rate forces ``[N, 3]`` at velocities ``v`` ``[N, 3]`` (power ``f . v <= 0``)."""
+        return self.rate_ratio * self.forces(v)
+
+    def node_energy(self, x: Tensor) -> Tensor:
+        """Bending energy at every node ``[N]`` (N mm)."""
+        lx = self.laplacian(x)
+        return 0.5 * (self.scale * lx * lx).sum(1)
+
     def energy(self, x: Tensor) -> Tensor:
         """Total bending energy."""
-        lx = self.laplacian(x)
-        return 0.5 * (self.scale * lx * lx).sum()
+        return self.node_energy(x).sum()
 
     def stiffness_bound(self) -> Tensor:
         """Gershgorin bound per node of the bending stiffness ``L S L``, ``[N]``."""

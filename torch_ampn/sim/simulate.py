@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from contextlib import nullcontext
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,12 +20,15 @@ from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.contact import (
+    contact_damping,
     height_field_contact,
     nearest_nodes,
     ply_on_ply_contact,
+    ply_on_ply_normal,
     smooth_friction,
     vertex_normals,
 )
+from torch_ampn.sim.energy import WORK_TERMS, energy_record
 from torch_ampn.sim.geometry import die_surface, punch_surface, punch_travel
 from torch_ampn.sim.mechanics import OrthotropicMembrane, QuadraticBending
 from torch_ampn.utils.own_code import own_code
@@ -92,6 +95,22 @@ def _clamp_patch(x0: Tensor, per_ply: int, centre: int, radius: float) -> Tensor
     return torch.cat([torch.tensor([centre]), near[near != centre]])
 
 
+class ForceParts(NamedTuple):
+    """The forces on the ply nodes by kind, ``[Bn, 3]`` each; their sum is the total force."""
+
+    elastic: Tensor  # membrane and bending
+    viscous: Tensor  # matrix and bending viscosity
+    die: Tensor  # normal (penalty) contact
+    die_friction: Tensor
+    punch: Tensor
+    punch_friction: Tensor
+    ply: Tensor  # ply on ply, normal
+    ply_friction: Tensor
+    grippers: Tensor
+    contact_damping: Tensor  # of the die and ply-on-ply contacts
+    punch_damping: Tensor
+
+
 class LaminateModel:
     """Ply mechanics of ``B`` process settings as one disjoint system of ``B * n`` ply nodes.
 
@@ -126,13 +145,18 @@ class LaminateModel:
             cfg.transverse_stiffness,
             cfg.shear_stiffness,
             cfg.compression_ratio,
+            cfg.matrix_viscosity,
         )
         lx, ly = cfg.ply_size
         tol = 1e-9 * max(lx, ly)
         on_x0, on_y0 = self.x0[:, 0].abs() < tol, self.x0[:, 1].abs() < tol
         on_x1, on_y1 = (self.x0[:, 0] - lx).abs() < tol, (self.x0[:, 1] - ly).abs() < tol
         self.bending = QuadraticBending(
-            self.x0[:, :2], self.tris, ~(on_x0 | on_y0 | on_x1 | on_y1), cfg.bending_stiffness
+            self.x0[:, :2],
+            self.tris,
+            ~(on_x0 | on_y0 | on_x1 | on_y1),
+            cfg.bending_stiffness,
+            cfg.bending_viscosity,
         )
         # Symmetry planes e1 = 0 and e2 = 0: u1 = 0 resp. u2 = 0 (x0 is 0 there, so x * free).
         self.free = torch.ones_like(self.x0)
@@ -175,9 +199,8 @@ class LaminateModel:
         for i in range(3):
             node_area.index_add_(0, self.tris[:, i], self.membrane.area / 3.0)
         self.mass = (cfg.areal_mass * node_area)[:, None]  # [Bn, 1]
-        omega_max = float((self.stiffness_bound() / self.mass[:, 0]).max().sqrt())
         frame = cfg.duration / cfg.num_steps
-        critical = 2.0 / omega_max
+        critical = self.critical_time_step()
         if cfg.substeps is None:
             self.substeps = max(1, math.ceil(frame / (cfg.time_step_safety * critical)))
         else:
@@ -192,6 +215,10 @@ class LaminateModel:
         # Friction may at most stop a node within one step; a node can have several friction
         # sources (a tool and ply-on-ply pairs), so each gets a share of m / dt.
         self.friction_cap = 0.25 * self.mass / self.dt  # [Bn, 1]
+        # contact damping: a fraction of the critical damping of the penalty spring on the node
+        self.contact_damping_coeff = (
+            2.0 * cfg.contact_damping * (cfg.contact_stiffness * self.mass).sqrt()
+        )  # [Bn, 1]
         self.pair_friction_cap = torch.zeros_like(self.pairs_upper, dtype=torch.float64)[:, None]
 
     def to(self, device: torch.device | str) -> LaminateModel:
@@ -206,17 +233,44 @@ class LaminateModel:
                     setattr(part, name, value.to(device))
         return self
 
+    def _membrane_bound(self, modulus: float) -> Tensor:
+        """Per-node Gershgorin-style bound ``[Bn]`` of a membrane operator of ``modulus`` (N/mm, N s/mm)."""
+        tris, x0 = self.tris, self.x0
+        edge2 = torch.stack([(x0[tris[:, i]] - x0[tris[:, (i + 1) % 3]]).pow(2).sum(1) for i in range(3)])
+        per_tri = 2.0 * modulus * self.membrane.area / edge2.min(0).values
+        out = torch.zeros(x0.size(0), dtype=x0.dtype)
+        for i in range(3):
+            out.index_add_(0, tris[:, i], per_tri)
+        return out
+
     def stiffness_bound(self) -> Tensor:
         """A per-node upper bound of the stiffness (N/mm), for the mass scaling, ``[Bn]``."""
-        cfg, tris, x0 = self.cfg, self.tris, self.x0
-        edge2 = torch.stack([(x0[tris[:, i]] - x0[tris[:, (i + 1) % 3]]).pow(2).sum(1) for i in range(3)])
-        c = cfg.fiber_stiffness + cfg.transverse_stiffness + cfg.shear_stiffness
-        k_tri = 2.0 * c * self.membrane.area / edge2.min(0).values
-        stiff = torch.zeros(x0.size(0), dtype=x0.dtype)
-        for i in range(3):
-            stiff.index_add_(0, tris[:, i], k_tri)
+        cfg = self.cfg
+        stiff = self._membrane_bound(cfg.fiber_stiffness + cfg.transverse_stiffness + cfg.shear_stiffness)
         # contact: both tools, one ply-on-ply pair as the upper node and a few as the lower one
         return stiff + 6.0 * cfg.contact_stiffness + self.bending.stiffness_bound()
+
+    def viscosity_bound(self) -> Tensor:
+        """A per-node upper bound of the explicit viscous coefficient (N s/mm), ``[Bn]``."""
+        cfg = self.cfg
+        contact = 2.0 * cfg.contact_damping * (cfg.contact_stiffness * self.mass[:, 0]).sqrt()
+        return (
+            self._membrane_bound(2.0 * cfg.matrix_viscosity)
+            + self.bending.rate_ratio * self.bending.stiffness_bound()
+            + 6.0 * contact  # as many contacts as the stiffness bound counts
+        )
+
+    def critical_time_step(self) -> float:
+        """The explicit stability limit (s): ``min_i 2 / w_i (sqrt(1 + z_i^2) - z_i)``.
+
+        ``w_i = sqrt(k_i / m_i)`` from :meth:`stiffness_bound` and the damping ratio
+        ``z_i = c_i / (2 m_i w_i)`` of the explicit viscous forces (:meth:`viscosity_bound`); the
+        mass-proportional damping is integrated implicitly and does not limit the step.
+        """
+        m = self.mass[:, 0]
+        omega = (self.stiffness_bound() / m).sqrt()
+        zeta = self.viscosity_bound() / (2.0 * m * omega)
+        return float((2.0 / omega * ((1.0 + zeta * zeta).sqrt() - zeta)).min())
 
     def refresh_pairs(self, x: Tensor) -> None:
         """Pair every node of ply k >= 1 with the nearest node of ply k - 1 of the same copy."""
@@ -232,35 +286,45 @@ class LaminateModel:
             torch.minimum(self.mass[self.pairs_upper], self.mass[self.pairs_lower]) / self.dt
         )
 
-    def forces(
+    def force_parts(
         self, x: Tensor, v: Tensor, travel: Tensor, punch_speed: float, pairs_lower: Tensor, pair_cap: Tensor
-    ) -> Tensor:
-        """Total force on every ply node ``[Bn, 3]`` (``travel``: punch travel, 0-dim tensor)."""
+    ) -> ForceParts:
+        """Every force on every ply node, ``[Bn, 3]`` each (``travel``: punch travel, 0-dim tensor)."""
         cfg = self.cfg
-        f = self.membrane.forces(x) + self.bending.forces(x)
+        zero = torch.zeros_like(x)
+        elastic = self.membrane.forces(x) + self.bending.forces(x)
+        viscous = zero
+        if cfg.matrix_viscosity > 0:
+            viscous = viscous + self.membrane.viscous_forces(x, v)
+        if cfg.bending_viscosity > 0:
+            viscous = viscous + self.bending.viscous_forces(v)
         xy = x[:, :2]
         die_z, die_grad = die_surface(xy, cfg)
-        f_c, f_n, normal = height_field_contact(
+        damped = cfg.contact_damping > 0
+        die, f_n, normal = height_field_contact(
             x, die_z, die_grad, 1.0, self.die_offset, cfg.contact_stiffness
         )
-        f = (
-            f
-            + f_c
-            + smooth_friction(f_n * self.die_friction, v, normal, cfg.friction_tool, self.friction_cap)
+        die_friction = smooth_friction(
+            f_n * self.die_friction, v, normal, cfg.friction_tool, self.friction_cap
         )
+        damping = contact_damping(f_n, v, normal, self.contact_damping_coeff) if damped else zero
         punch_z, punch_grad = punch_surface(xy, travel, cfg)
-        f_c, f_n, normal = height_field_contact(
+        punch, f_n, normal = height_field_contact(
             x, punch_z, punch_grad, -1.0, self.punch_offset, cfg.contact_stiffness
         )
         v_rel = v + torch.tensor([0.0, 0.0, punch_speed], dtype=v.dtype, device=v.device)  # punch along -e3
-        f = (
-            f
-            + f_c
-            + smooth_friction(f_n * self.punch_friction, v_rel, normal, cfg.friction_tool, self.friction_cap)
+        punch_friction = smooth_friction(
+            f_n * self.punch_friction, v_rel, normal, cfg.friction_tool, self.friction_cap
         )
+        punch_damping = contact_damping(f_n, v_rel, normal, self.contact_damping_coeff) if damped else zero
+        ply, ply_friction = zero, zero
         if cfg.num_plies > 1:
             normals = vertex_normals(x, self.tris)
-            f = f + ply_on_ply_contact(
+            # the pair's reduced mass (equal masses: half the lighter one's, pair_cap * dt)
+            pair_damping = (
+                2.0 * cfg.contact_damping * (0.5 * cfg.contact_stiffness * pair_cap * self.dt).sqrt()
+            )
+            ply, ply_friction, ply_damping = ply_on_ply_contact(
                 x,
                 v,
                 self.pairs_upper,
@@ -270,36 +334,114 @@ class LaminateModel:
                 cfg.contact_stiffness,
                 cfg.friction_ply,
                 pair_cap,
+                pair_damping if damped else None,
             )
+            damping = damping + ply_damping
+        grippers = zero
         if cfg.num_grippers:
             d = self.gripper_anchor - x[self.gripper_index]  # [K, 3]
             pull = self.gripper_pull[:, None] * d / d.norm(dim=1, keepdim=True).clamp_min(1e-9)
-            f = f.index_add(0, self.gripper_index, pull)
-        return f
+            grippers = zero.index_add(0, self.gripper_index, pull)
+        return ForceParts(
+            elastic,
+            viscous,
+            die,
+            die_friction,
+            punch,
+            punch_friction,
+            ply,
+            ply_friction,
+            grippers,
+            damping,
+            punch_damping,
+        )
+
+    def forces(
+        self, x: Tensor, v: Tensor, travel: Tensor, punch_speed: float, pairs_lower: Tensor, pair_cap: Tensor
+    ) -> Tensor:
+        """Total force on every ply node ``[Bn, 3]`` (``travel``: punch travel, 0-dim tensor)."""
+        return sum(self.force_parts(x, v, travel, punch_speed, pairs_lower, pair_cap))
+
+    def per_copy(self, values: Tensor) -> Tensor:
+        """Sums of per-node ``values`` ``[Bn]`` over each copy, ``[B]``."""
+        return values.view(self.copies, -1).sum(1)
+
+    def state_energies(self, x: Tensor, v: Tensor, travel: Tensor, pairs_lower: Tensor) -> Tensor:
+        """Energies of the state (N mm) per copy ``[B, 4]``: kinetic, membrane, bending, contact.
+
+        ``contact`` is the penalty energy ``f_n^2 / (2 k)`` of the tool and ply-on-ply contacts.
+        """
+        cfg = self.cfg
+        k = cfg.contact_stiffness
+        half_compliance = 0.5 / k if k > 0 else 0.0  # f_n^2 / (2 k); no contact without stiffness
+        xy = x[:, :2]
+        kinetic = self.per_copy(0.5 * self.mass[:, 0] * (v * v).sum(1))
+        membrane = self.membrane.cell_energy(x).view(self.copies, -1).sum(1)
+        bending = self.per_copy(self.bending.node_energy(x))
+        die_z, die_grad = die_surface(xy, cfg)
+        _, die_n, _ = height_field_contact(x, die_z, die_grad, 1.0, self.die_offset, k)
+        punch_z, punch_grad = punch_surface(xy, travel, cfg)
+        _, punch_n, _ = height_field_contact(x, punch_z, punch_grad, -1.0, self.punch_offset, k)
+        contact = self.per_copy((die_n * die_n + punch_n * punch_n) * half_compliance)
+        if cfg.num_plies > 1 and self.pairs_upper.numel():
+            normals = vertex_normals(x, self.tris)
+            ply_n, _ = ply_on_ply_normal(x, self.pairs_upper, pairs_lower, normals, cfg.ply_thickness, k)
+            contact = contact + (ply_n * ply_n * half_compliance).view(self.copies, -1).sum(1)
+        return torch.stack([kinetic, membrane, bending, contact], 1)
 
     def step_function(
         self, compile: bool = False
-    ) -> Callable[[Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]:
-        """One explicit sub-step ``(x, v, travel, pairs_lower, pair_cap) -> (x, v)``.
+    ) -> Callable[[Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+        """One explicit sub-step ``(x, v, travel, pairs_lower, pair_cap) -> (x, v, work)``.
 
         Semi-implicit Euler with implicit mass-proportional damping:
         ``v' = (v + dt f / m) / (1 + c dt)``, ``x' = x + dt v'``; symmetry constraints zero the
         constrained velocity components of nodes on the planes, and no node may cross them.
+        ``work`` ``[B, 6]`` is what the sub-step added to the path terms of the energy balance
+        (:data:`torch_ampn.sim.energy.WORK_TERMS`, N mm) per copy: each force's power on ``v'``
+        times ``dt``, on the sub-step's mean velocity ``(v + v') / 2`` (the punch's on the punch's
+        velocity; friction's on the relative velocity).
         """
         inv_mass_dt = self.dt / self.mass  # [Bn, 1]
         damp_free = self.free / (1.0 + self.cfg.damping * self.dt)  # [Bn, 3]
+        mass_damping = self.cfg.damping * self.mass[:, 0]  # [Bn] N s/mm
+        half_mass = 0.5 * self.mass[:, 0]
         speed, dt = self.cfg.stroke / self.cfg.duration, self.dt
+        punch_velocity = torch.tensor([0.0, 0.0, -speed], dtype=self.x0.dtype, device=self.x0.device)
         lower = torch.tensor([0.0, 0.0, -math.inf], dtype=self.x0.dtype, device=self.x0.device)  # x1, x2 >= 0
 
         def step(
             x: Tensor, v: Tensor, travel: Tensor, pairs_lower: Tensor, pair_cap: Tensor
-        ) -> tuple[Tensor, Tensor]:
-            f = self.forces(x, v, travel, speed, pairs_lower, pair_cap)
-            v = (v + f * inv_mass_dt) * damp_free
-            x_new = x + dt * v
+        ) -> tuple[Tensor, Tensor, Tensor]:
+            parts = self.force_parts(x, v, travel, speed, pairs_lower, pair_cap)
+            v_new = (v + sum(parts) * inv_mass_dt) * damp_free
+            x_new = x + dt * v_new
             # the symmetry planes are walls for the rest of the quarter model, too
             blocked = x_new < lower
-            return torch.maximum(x_new, lower), torch.where(blocked, torch.zeros_like(v), v)
+            v_out = torch.where(blocked, torch.zeros_like(v_new), v_new)
+            # powers on the mean velocity of the sub-step: m (v' - v) / dt = f makes
+            # 0.5 m (|v'|^2 - |v|^2) = dt f . (v + v') / 2 exact for the kinetic energy
+            v_mean = 0.5 * (v + v_new)
+            punch = parts.punch + parts.punch_friction + parts.punch_damping
+            power = torch.stack(
+                [
+                    mass_damping * (v_new * v_mean).sum(1)
+                    - (parts.contact_damping * v_mean + parts.punch_damping * (v_mean - punch_velocity)).sum(
+                        1
+                    ),
+                    -(parts.viscous * v_mean).sum(1),
+                    -(
+                        (parts.die_friction + parts.ply_friction) * v_mean
+                        + parts.punch_friction * (v_mean - punch_velocity)
+                    ).sum(1),
+                    half_mass * (v_new * v_new - v_out * v_out).sum(1) / dt,
+                    (parts.grippers * v_mean).sum(1),
+                    (punch * punch_velocity).sum(1),
+                ],
+                1,
+            )  # [Bn, 6]
+            work = dt * power.view(self.copies, -1, power.size(1)).sum(1)  # [B, 6]
+            return torch.maximum(x_new, lower), v_out, work
 
         # a code object per mesh and part: the step reads the tool geometry as constants, so each
         # part of a family compiles its own step, rather than recompiling a shared one until the
@@ -528,6 +670,10 @@ def simulate_batch(
                 noise = (2 * torch.rand(n, 3, generator=g, dtype=x.dtype) - 1) * perturbation  # [n, 3]
                 x[b * n : (b + 1) * n] += noise.to(x.device) * model.free[b * n : (b + 1) * n]
         frames = [x.clone()]
+        zero_travel = torch.zeros((), dtype=x.dtype, device=x.device)
+        work = torch.zeros(copies, len(WORK_TERMS), dtype=x.dtype, device=x.device)  # [B, 6] N mm
+        states = [model.state_energies(x, v, zero_travel, model.pairs_lower)]  # [B, 4] per saved step
+        works = [work.clone()]
         steps = range(1, cfg.num_steps + 1)
         if progress:
             from tqdm.auto import tqdm
@@ -541,11 +687,15 @@ def simulate_batch(
                 travel = torch.tensor(float(punch_travel(t, cfg)), dtype=x.dtype, device=x.device)
                 # the first call compiles: its kernels are built for every thread torch may use
                 with threads.at_ceiling() if compile and k == 1 and sub == 0 else nullcontext():
-                    x, v = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+                    x, v, dw = step(x, v, travel, model.pairs_lower, model.pair_friction_cap)
+                work = work + dw
             if not torch.isfinite(x).all():
                 raise FloatingPointError(f"simulation diverged at step {k} (seeds {list(seeds)})")
             frames.append(x.clone())
+            states.append(model.state_energies(x, v, travel, model.pairs_lower))
+            works.append(work.clone())
         ply_frames = torch.stack(frames).cpu().view(cfg.num_steps + 1, copies, n, 3)
+        energies = torch.cat([torch.stack(states), torch.stack(works)], 2).cpu()  # [T+1, B, 10]
 
     times, tool_frames = _tool_motion(cfg, mesh, n)
     fiber = _fiber_directions(cfg, mesh, n)
@@ -566,6 +716,7 @@ def simulate_batch(
                 config=cfg.to_dict(),
                 substeps=model.substeps,
                 gripper_edge_fraction=where.tolist(),
+                energy=energy_record(energies[:, b]),
                 **({"initial_perturbation": float(perturbation)} if perturbation else {}),
             )
         )

@@ -111,22 +111,21 @@ def setting_spread(trajectories: Sequence[Trajectory]) -> dict[str, Any]:
     }
 
 
-def chaos_floor(
+def rerun_perturbed(
     trajectories: Sequence[Trajectory],
     perturbation: float = 1e-6,
     compile: bool = False,
     device: torch.device | str = "cpu",
-) -> dict[str, Any]:
-    """RMSE between each trajectory and its settings simulated again from a perturbed start.
+) -> list[Trajectory]:
+    """Each trajectory's settings simulated again from a start moved by up to ``perturbation`` mm.
 
-    The initial ply positions are moved by up to ``perturbation`` mm. Each trajectory is
-    simulated again from its ``meta`` (``config`` and ``seed``), one at a time, eagerly unless
+    Each is simulated from its ``meta`` (``config`` and ``seed``), one at a time, eagerly unless
     ``compile`` (a compiled solver's last bits also depend on the batch; eager ones do not, so
-    eagerly the floor is the perturbation's effect alone).
+    eagerly the difference is the perturbation's effect alone).
     """
-    from torch_ampn.sim.simulate import simulate_batch
+    from torch_ampn.sim.simulate import sample_process, simulate_batch
 
-    values = []
+    again = []
     for traj in trajectories:
         if traj.meta.get("simulator") != "torch_ampn.sim" or "seed" not in traj.meta:
             raise ValueError(
@@ -134,11 +133,128 @@ def chaos_floor(
                 "simulator's config and seed: the chaos floor simulates it again"
             )
         cfg = StampFormingConfig.from_dict(traj.meta["config"])
-        again = simulate_batch(
-            cfg, [int(traj.meta["seed"])], compile=compile, device=device, perturbation=perturbation
-        )[0]
-        values.append(trajectory_rmse(again, traj))
+        settings, where = None, traj.meta.get("gripper_edge_fraction")
+        if where is not None and sample_process(cfg, int(traj.meta["seed"]))[0].tolist() != where:
+            settings = [(where, traj.gripper_force.double())]  # explicit settings, not the seed's
+        again += simulate_batch(
+            cfg,
+            [int(traj.meta["seed"])],
+            compile=compile,
+            device=device,
+            perturbation=perturbation,
+            settings=settings,
+        )
+    return again
+
+
+def chaos_floor(
+    trajectories: Sequence[Trajectory],
+    perturbation: float = 1e-6,
+    compile: bool = False,
+    device: torch.device | str = "cpu",
+    again: Sequence[Trajectory] | None = None,
+) -> dict[str, Any]:
+    """RMSE between each trajectory and its settings simulated again from a perturbed start.
+
+    ``again``: those runs (:func:`rerun_perturbed`), if made before; else they are simulated here.
+    """
+    if again is None:
+        again = rerun_perturbed(trajectories, perturbation, compile, device)
+    values = [trajectory_rmse(b, a) for a, b in zip(trajectories, again, strict=True)]
     return {"perturbation_mm": perturbation, **_summary(values)}
+
+
+#: The part-quality measures whose two-run reliability :func:`two_run_reliability` reports.
+RELIABILITY_MEASURES: tuple[str, ...] = (
+    "draw_in_mean",
+    "wrinkle_rms",
+    "wrinkle_amplitude",
+    "shear_rms",
+    "penetration_max",
+)
+#: The aims: Spearman between two runs of each setting (draw-in mean; wrinkle and shear RMS),
+#: and the wrinkle RMS's spread between settings over its spread within a setting.
+RELIABILITY_AIMS: dict[str, float] = {
+    "draw_in_mean": 0.9,
+    "wrinkle_rms": 0.7,
+    "shear_rms": 0.7,
+    "wrinkle_between_over_within": 3.0,
+}
+
+
+def two_run_reliability(
+    first: Sequence[Trajectory], second: Sequence[Trajectory], measures: Sequence[str] = RELIABILITY_MEASURES
+) -> dict[str, Any]:
+    """Do two runs of each setting agree on the part's quality, and on its ranking over the settings?
+
+    ``first[i]`` and ``second[i]`` are two runs of one setting (e.g. from starts 1e-6 mm apart,
+    :func:`rerun_perturbed`); at least 3 settings. For each measure of
+    :func:`torch_ampn.design.measures.part_quality` at the final state: the values of both runs,
+    ``spearman`` (rank correlation of the two runs over the settings: how reliably the data
+    rank the settings), ``between`` (standard deviation over the settings of the mean of the two
+    runs), ``within`` (the standard deviation within a setting, ``sqrt(mean((a - b)^2) / 2)``),
+    their ratio, and ``range`` (largest minus smallest over the settings). ``chaos_mm``: the
+    rollout RMSE between the two runs, mean over the settings.
+    """
+    from scipy.stats import spearmanr
+
+    from torch_ampn.design.measures import WrinkleOperator, part_quality
+
+    if len(first) != len(second) or len(first) < 3:
+        raise ValueError(f"two runs of at least 3 settings needed, got {len(first)} and {len(second)}")
+    _one_mesh([*first, *second])
+    wrinkle = WrinkleOperator(first[0])
+    values = {
+        run: [part_quality(t, t.pos[-1].double(), wrinkle=wrinkle, names=measures) for t in runs]
+        for run, runs in (("first", first), ("second", second))
+    }
+    out: dict[str, Any] = {
+        "settings": len(first),
+        "chaos_mm": _summary([trajectory_rmse(b, a) for a, b in zip(first, second, strict=True)]),
+        "measures": {},
+    }
+    for name in measures:
+        a = torch.tensor([v[name] for v in values["first"]], dtype=torch.float64)
+        b = torch.tensor([v[name] for v in values["second"]], dtype=torch.float64)
+        mean = 0.5 * (a + b)
+        between = float(mean.std(correction=0))
+        within = float(((a - b).square().mean() / 2).sqrt())
+        rho = spearmanr(a.numpy(), b.numpy()).statistic
+        out["measures"][name] = {
+            "first": a.tolist(),
+            "second": b.tolist(),
+            "spearman": float(rho) if math.isfinite(rho) else float("nan"),
+            "between": between,
+            "within": within,
+            "between_over_within": between / within if within > 0 else math.inf,
+            "range": float(mean.max() - mean.min()),
+        }
+    m = out["measures"]
+    checks = [m[k]["spearman"] >= v for k, v in RELIABILITY_AIMS.items() if k in m]
+    if "wrinkle_rms" in m:
+        checks.append(
+            m["wrinkle_rms"]["between_over_within"] >= RELIABILITY_AIMS["wrinkle_between_over_within"]
+        )
+    out["aims"] = dict(RELIABILITY_AIMS)
+    out["meets_aims"] = bool(all(checks))
+    return out
+
+
+def format_reliability(report: dict[str, Any]) -> str:
+    """A small table of :func:`two_run_reliability`'s result."""
+    lines = [
+        f"two runs of {report['settings']} settings: rollout RMSE between them "
+        f"{report['chaos_mm']['mean']:.3f} mm",
+        f"{'measure':<18} {'spearman':>8} {'between':>8} {'within':>8} {'ratio':>6} {'range':>8}",
+    ]
+    for name, r in report["measures"].items():
+        lines.append(
+            f"{name:<18} {r['spearman']:8.2f} {r['between']:8.3f} {r['within']:8.3f} "
+            f"{r['between_over_within']:6.1f} {r['range']:8.3f}"
+        )
+    aims = ", ".join(f"{k} >= {v:g}" for k, v in report["aims"].items())
+    lines.append(f"aims ({aims}): {'met' if report['meets_aims'] else 'not met'}")
+    return "\n".join(lines)
 
 
 def spread_report(spread: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:

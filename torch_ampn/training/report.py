@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from torch_ampn.baselines.settings import SETTING_BASELINE_NAMES
-from torch_ampn.data.io import atomic_write_text
+from torch_ampn.data.io import atomic_savefig, atomic_write_text
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.training.items import RolloutItem
 
@@ -24,12 +24,6 @@ def _figure():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def _savefig(fig, path: Path, dpi: int = 110) -> None:
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=dpi)
-    os.replace(tmp, path)
 
 
 def verdict(summary: dict[str, float | str]) -> list[str]:
@@ -74,7 +68,7 @@ def plot_final_shapes(path: Path, traj: Trajectory, pred: Tensor, title: str) ->
         ax.set_title(f"{label}: final step {traj.num_steps}, bottom ply")
     fig.colorbar(last, ax=fig.axes, shrink=0.6, label="e3 displacement [mm]")
     fig.suptitle(title)
-    _savefig(fig, path)
+    atomic_savefig(fig, path)
     plt.close(fig)
 
 
@@ -284,7 +278,7 @@ class TestReport:
         ax.legend()
         ax.set_title("Autoregressive rollout error on the test trajectories")
         fig.tight_layout()
-        _savefig(fig, path)
+        atomic_savefig(fig, path)
         plt.close(fig)
 
 
@@ -320,7 +314,7 @@ def write_prediction(
     where = ", ".join(f"{w:.2f}" for w in item.trajectory.meta.get("gripper_edge_fraction", []))
     ax.set_title(f"{item.name}: predicted final shape (bottom ply)\ngrippers at {where}, forces {forces} N")
     fig.colorbar(last, ax=ax, shrink=0.6, label="e3 displacement [mm]")
-    _savefig(fig, folder / f"{item.name}.png")
+    atomic_savefig(fig, folder / f"{item.name}.png")
     plt.close(fig)
     info = dict(
         name=item.name,
