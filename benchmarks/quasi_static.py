@@ -43,20 +43,23 @@ from torch_ampn.sim.spread import blow_up, format_reliability, setting_spread, t
 FIRST_SEED = 900_000
 
 #: Overrides of StampFormingConfig's defaults; "v2" is data version 2 (the default until 2026-12-05).
+VISC02: dict[str, Any] = {"damping": 2.0, "matrix_viscosity": 0.2, "bending_viscosity": 2.0}
+VISC05: dict[str, Any] = {"damping": 2.0, "matrix_viscosity": 0.5, "bending_viscosity": 5.0}
+FACE: dict[str, Any] = {"ply_contact": "face"}
 VARIANTS: dict[str, dict[str, Any]] = {
     "v2": {},
     # deformation damped by the molten matrix's and the bending's viscosity, rigid motion less by the mass
-    "visc02": {"damping": 2.0, "matrix_viscosity": 0.2, "bending_viscosity": 2.0},
-    "visc05": {"damping": 2.0, "matrix_viscosity": 0.5, "bending_viscosity": 5.0},
-    "d5_visc05": {"damping": 5.0, "matrix_viscosity": 0.5, "bending_viscosity": 5.0},
-    # a quarter of the mass scaling (the sub-step, and the cost, twice v2's)
+    "visc02": VISC02,
+    "visc05": VISC05,
+    # ply-on-ply contact against the closest face, conservative in the gap (no energy made by the contact)
+    "face": FACE,
+    "face_visc02": {**FACE, **VISC02},
+    "face_visc05": {**FACE, **VISC05},
+    "face_d5_visc03": {**FACE, "damping": 5.0, "matrix_viscosity": 0.3, "bending_viscosity": 3.0},
+    # half the mass scaling (the sub-step, and the cost, 1.4 times)
+    "face_mass2_visc02": {**FACE, **VISC02, "areal_mass": 3e-6},
+    # a quarter of the mass scaling alone
     "mass4": {"areal_mass": 1.5e-6},
-    "mass4_d5_visc02": {
-        "areal_mass": 1.5e-6,
-        "damping": 5.0,
-        "matrix_viscosity": 0.2,
-        "bending_viscosity": 2.0,
-    },
 }
 
 

@@ -1,3 +1,4 @@
+import json
 from pathlib import Path
 
 import pytest
@@ -239,3 +240,23 @@ def test_generate_from_a_script_without_main_guard_fails_in_one_line_instead_of_
     last = run.stderr.strip().splitlines()[-1]
     assert last.startswith("RuntimeError: generate_dataset: a worker process died")
     assert 'if __name__ == "__main__":' in last
+
+
+def test_energy_command_prints_plots_and_refuses_data_without_a_balance(tmp_path, capsys):
+    from torch_ampn.sim import simulate_batch
+
+    (tmp_path / "data" / "train").mkdir(parents=True)
+    for t in simulate_batch(TINY, seeds=[0, 1]):
+        t.save(tmp_path / "data" / "train" / f"traj_{t.meta['seed']:06d}.pt")
+    plot, out = tmp_path / "energy.png", tmp_path / "energy.json"
+    code = data_cli.main(["energy", str(tmp_path / "data"), "--plot", str(plot), "--json", str(out)])
+    assert code == 0 and plot.read_bytes()[:4] == b"\x89PNG"
+    table = json.loads(out.read_text())
+    assert set(table) == {"traj_000000.pt", "traj_000001.pt"}
+    saved = Trajectory.load(tmp_path / "data" / "train" / "traj_000000.pt").meta["energy"]
+    assert table["traj_000000.pt"]["final"]["work_punch"] == pytest.approx(saved["work_punch"][-1])
+    assert "KE/IE" in capsys.readouterr().out
+    # the committed fixtures were simulated before the balance was kept
+    old = split_files(DATA, "train")[0]
+    assert data_cli.main(["energy", str(old)]) == 2
+    assert f"{old}: field 'meta' has no 'energy'" in capsys.readouterr().err

@@ -221,3 +221,48 @@ def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
     assert report["spread_over_floor"] == pytest.approx(report["from_mean"]["mean"] / floor["mean"])
     assert report["tool_travel_mm"] == pytest.approx(60.0, abs=1e-3) and not report["blown_up"]
     assert "spread / floor" in capsys.readouterr().out
+
+
+def test_two_run_reliability_by_hand(small_runs):
+    """Two identical runs agree perfectly; a second run that reverses the settings' order ranks
+    them backwards; ``within`` is the hand formula sqrt(mean((a - b)^2) / 2)."""
+    import math
+
+    from torch_ampn.design.measures import part_quality
+    from torch_ampn.sim.spread import two_run_reliability
+
+    a, b = small_runs
+    mid = dataclasses.replace(a, pos=0.5 * (a.pos + b.pos))  # a third part between the two
+    runs = [a, mid, b]
+    same = two_run_reliability(runs, runs)
+    assert same["chaos_mm"]["mean"] == 0.0
+    for name, r in same["measures"].items():
+        assert r["within"] == 0.0 and (r["spearman"] == pytest.approx(1.0) or math.isnan(r["spearman"])), name
+    reverse = two_run_reliability(runs, runs[::-1])
+    values = [part_quality(t, t.pos[-1].double(), names=["draw_in_mean"])["draw_in_mean"] for t in runs]
+    r = reverse["measures"]["draw_in_mean"]
+    assert r["first"] == pytest.approx(values)
+    assert len(set(values)) == 3 and sorted(values) in (values, values[::-1])  # the middle part lies between
+    assert r["spearman"] == pytest.approx(-1.0)  # so the reversed run ranks them exactly backwards
+    within = math.sqrt(sum((x - y) ** 2 for x, y in zip(values, values[::-1], strict=True)) / 3 / 2)
+    assert r["within"] == pytest.approx(within)
+    mean = [(x + y) / 2 for x, y in zip(values, values[::-1], strict=True)]
+    assert r["range"] == pytest.approx(max(mean) - min(mean))
+    with pytest.raises(ValueError, match="at least 3 settings"):
+        two_run_reliability(runs[:2], runs[:2])
+
+
+def test_the_spread_command_reports_the_two_run_reliability(small_sim, tmp_path, capsys):
+    from torch_ampn.cli.data import main
+    from torch_ampn.sim import simulate_batch
+
+    (tmp_path / "train").mkdir()
+    for t in simulate_batch(small_sim, seeds=[5, 6, 7]):
+        t.save(tmp_path / "train" / f"traj_{t.meta['seed']:06d}.pt")
+    assert main(["spread", str(tmp_path), "--chaos", "3", "--json", str(tmp_path / "spread.json")]) == 0
+    report = json.loads((tmp_path / "spread.json").read_text())
+    reliability = report["reliability"]
+    assert reliability["settings"] == 3 and set(reliability["measures"]) >= {"draw_in_mean", "wrinkle_rms"}
+    assert reliability["chaos_mm"]["mean"] == pytest.approx(report["chaos_floor"]["mean"])
+    out = capsys.readouterr().out
+    assert "two runs of 3 settings" in out and "spearman" in out

@@ -6,7 +6,8 @@
     torch-ampn-data generate --out data/family --family default    # every trajectory its own part
     torch-ampn-data generate --out data/soft --simulator '{"shear_stiffness": 2.0}'   # other settings
     torch-ampn-data check data/default
-    torch-ampn-data spread data/default --split train --chaos 2   # do the settings matter?
+    torch-ampn-data spread data/default --split test --chaos 12   # do the settings decide the part?
+    torch-ampn-data energy data/default --plot outputs/energy.png   # kinetic, strain, dissipated, work
     torch-ampn-data convert results.xdmf --out data/mine/train/run_000.pt
     torch-ampn-data convert run_001/d3plot --parts parts.yaml --out data/mine/train/run_001.pt   # LS-DYNA
     torch-ampn-data convert run_002.inp --parts parts.yaml --out data/mine/train/run_002.pt      # Abaqus
@@ -60,7 +61,15 @@ def _check(root: Path) -> int:
 def _spread(root: Path, split: str, chaos: int, perturbation: float, out: Path | None) -> int:
     """Print (and write as JSON) the setting spread of ``root/split`` against its chaos floor."""
     from torch_ampn.data.dataset import split_files
-    from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
+    from torch_ampn.sim.spread import (
+        chaos_floor,
+        format_reliability,
+        format_report,
+        rerun_perturbed,
+        setting_spread,
+        spread_report,
+        two_run_reliability,
+    )
 
     files = split_files(root, split)
     if len(files) < 2:
@@ -68,13 +77,69 @@ def _spread(root: Path, split: str, chaos: int, perturbation: float, out: Path |
     trajectories = [Trajectory.load(f) for f in files]
     spread = setting_spread(trajectories)
     print(f"chaos floor: simulating {chaos} trajectories again from a perturbed start ...", flush=True)
-    report = spread_report(spread, chaos_floor(trajectories[:chaos], perturbation))
+    again = rerun_perturbed(trajectories[:chaos], perturbation)
+    report = spread_report(spread, chaos_floor(trajectories[:chaos], perturbation, again=again))
     report.update(dataset=str(root), split=split)
     print(format_report(report))
+    if chaos >= 3:  # the two runs' ranks of the settings by part quality
+        report["reliability"] = two_run_reliability(trajectories[:chaos], again)
+        print(format_reliability(report["reliability"]))
+    else:
+        print("two-run reliability of the part-quality measures: needs --chaos 3 or more")
     if out is not None:
         from torch_ampn.data.io import atomic_write_text
 
         atomic_write_text(out, json.dumps(report, indent=1))
+        print(f"wrote {out}")
+    return 0
+
+
+def _energy(path: Path, split: str, plot: Path | None, out: Path | None, curves: int) -> int:
+    """Print the energy balance of a trajectory file or a dataset split; plot and write it on request."""
+    from torch_ampn.sim.energy import energy_summary, plot_energy
+
+    if path.is_dir():
+        from torch_ampn.data.dataset import split_files
+
+        files = split_files(path, split)
+    else:
+        files = [path]
+    if not files:
+        raise ValueError(f"{path / split}: no trajectories")
+    rows, records = [], []
+    for f in files:
+        traj = Trajectory.load(f)
+        record = traj.meta.get("energy")
+        if record is None:
+            raise ValueError(
+                f"{f}: field 'meta' has no 'energy' (not made by the embedded simulator, or made "
+                "before it kept its energy balance: simulate it again)"
+            )
+        rows.append((f.name, energy_summary(record, str(f))))
+        records.append((f.stem, record, traj.time.tolist()))
+    print(
+        f"{'trajectory':<22} {'KE/IE':>6} {'QS %':>5} {'damp/W':>7} {'visc/W':>7} {'fric/W':>7} "
+        f"{'W [J]':>7} {'grip [J]':>8} {'peak KE [J]':>11} {'balance':>8}"
+    )
+    for name, r in rows:
+        print(
+            f"{name:<22} {r['kinetic_over_internal']:6.3f} {100 * r['quasi_static_fraction']:5.0f} "
+            f"{r['damping_over_work']:7.3f} {r['viscosity_over_work']:7.3f} {r['friction_over_work']:7.3f} "
+            f"{r['final']['external'] / 1000:7.2f} {r['final']['work_grippers'] / 1000:8.3f} "
+            f"{r['peak_kinetic'] / 1000:11.3f} {r['balance_error']:8.3f}"
+        )
+    print(
+        "KE/IE: median kinetic over internal energy (quasi-static: <= 0.05); QS %: steps at or below "
+        "it; damp/W, visc/W, fric/W: the mass damping's, the viscosity's and friction's dissipation "
+        "over the external work W (grippers + punch); balance: largest |ETOTAL| over W"
+    )
+    if plot is not None:
+        shown = records[:curves]
+        print(f"wrote {plot_energy([(n, r) for n, r, _ in shown], plot, times=shown[0][2])}")
+    if out is not None:
+        from torch_ampn.data.io import atomic_write_text
+
+        atomic_write_text(out, json.dumps({name: r for name, r in rows}, indent=1))
         print(f"wrote {out}")
     return 0
 
@@ -200,6 +265,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--chaos", type=int, default=2, help="trajectories simulated again (default 2)")
     s.add_argument("--perturbation", type=float, default=1e-6, help="initial ply displacement, mm")
     s.add_argument("--json", type=Path, default=None, help="also write the numbers here")
+    n = sub.add_parser("energy", help="the simulator's energy balance of a trajectory or a dataset split")
+    n.add_argument("path", type=Path, help="a trajectory .pt or a dataset folder")
+    n.add_argument("--split", default="train", help="the split of a dataset folder (default train)")
+    n.add_argument("--plot", type=Path, default=None, help="plot the terms and ratios over time (PNG)")
+    n.add_argument("--curves", type=int, default=3, help="trajectories in the plot (default 3)")
+    n.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     c = sub.add_parser(
         "convert",
         help="LS-DYNA d3plot, Abaqus .inp + ODB table, or meshio series (.xdmf, .vtu folder) -> .pt",
@@ -245,6 +316,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.chaos < 1:
                 raise ValueError(f"--chaos must be >= 1, got {args.chaos}")
             return _spread(args.root, args.split, args.chaos, args.perturbation, args.json)
+        elif args.command == "energy":
+            return _energy(args.path, args.split, args.plot, args.json, args.curves)
         elif args.command == "convert":
             traj = _convert(args.input, args.parts, args.displacements)
             traj.save(args.out)

@@ -13,6 +13,8 @@ ADDED_LATER: dict[str, Any] = {
     "matrix_viscosity": 0.0,
     "bending_viscosity": 0.0,
     "contact_damping": 0.0,
+    "ply_contact": "node",
+    "selective_mass_scaling": False,
 }
 #: The default material until 2026-12-02 (data version 1): pass these to reproduce data made
 #: before, e.g. ``StampFormingConfig(**MATERIAL_V1)`` or ``--simulator`` with them.
@@ -48,7 +50,13 @@ class StampFormingConfig:
     transverse and shear strain rates: the molten matrix) and ``bending_viscosity`` (N mm s, on
     the bending rate); ``contact_damping`` damps the normal motion of closed penalty contacts,
     as a fraction of the critical damping of the penalty spring on the node's mass (explicit
-    codes' contact damping, against chatter). ``substeps`` per saved
+    codes' contact damping, against chatter). Ply on ply, ``ply_contact = "node"`` keeps each
+    node of a ply off the tangent plane of the nearest node of the ply below (partners chosen
+    at every saved step; the penalty cut off past two thicknesses), ``"face"`` off the closest
+    of the triangles around that node, the reaction shared by the face's nodes and the penalty
+    faded out continuously (conservative in the gap). ``selective_mass_scaling`` adds mass to
+    the nodes whose stability limit is shorter than the median node's (the light edge and corner
+    nodes), as explicit codes scale mass to a target time step. ``substeps`` per saved
     step is chosen from the stability limit (``time_step_safety`` times the critical step)
     when ``None``; a fixed value that is unstable is refused. The physics does not depend
     on ``substeps``, so refining it converges.
@@ -99,6 +107,8 @@ class StampFormingConfig:
     matrix_viscosity: float = 0.0
     bending_viscosity: float = 0.0
     contact_damping: float = 0.0
+    ply_contact: str = "node"
+    selective_mass_scaling: bool = False
     time_step_safety: float = 0.6
 
     meta: dict = field(default_factory=dict)
@@ -175,6 +185,7 @@ class StampFormingConfig:
             (self.damping >= 0, "damping must be non-negative"),
             (self.matrix_viscosity >= 0, "matrix_viscosity must be non-negative"),
             (0 <= self.contact_damping <= 1, "contact_damping must be a fraction of critical in [0, 1]"),
+            (self.ply_contact in ("node", "face"), "ply_contact must be 'node' or 'face'"),
             (
                 self.bending_viscosity == 0 or (self.bending_viscosity > 0 and self.bending_stiffness > 0),
                 "bending_viscosity must be non-negative, and positive only with a positive bending_stiffness",

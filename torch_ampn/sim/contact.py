@@ -144,3 +144,150 @@ def contact_damping(f_normal: Tensor, v_rel: Tensor, normal: Tensor, coeff: Tens
     """
     closed = (f_normal > 0).to(v_rel.dtype)[:, None]
     return -(closed * coeff) * (v_rel * normal).sum(1, keepdim=True) * normal
+
+
+def incident_faces(triangles: Tensor, num_nodes: int) -> Tensor:
+    """The triangles around every node, ``[N, D]`` (``D`` the largest count; short rows repeat their first).
+
+    Nodes without a triangle get triangle 0 (they are never contact partners).
+    """
+    node = triangles.reshape(-1)  # [3F]
+    face = torch.arange(triangles.size(0)).repeat_interleave(3)
+    order = torch.argsort(node, stable=True)
+    node, face = node[order], face[order]
+    count = torch.bincount(node, minlength=num_nodes)
+    width = int(count.max()) if count.numel() else 1
+    start = torch.cumsum(count, 0) - count
+    rank = torch.arange(node.numel()) - start[node]
+    out = torch.zeros(num_nodes, width, dtype=torch.long)
+    out[node, rank] = face
+    first = out[:, :1].expand(-1, width)
+    pad = torch.arange(width)[None] >= count[:, None]
+    return torch.where(pad, first, out)
+
+
+def closest_points_on_triangles(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """Closest point to ``p`` on each triangle ``(a, b, c)`` and its barycentric weights.
+
+    Args:
+        p: Points ``[..., 3]``.
+        a: First corners, broadcastable to ``p``.
+        b: Second corners.
+        c: Third corners.
+
+    Returns:
+        ``(point [..., 3], weights [..., 3])`` with ``point = w0 a + w1 b + w2 c``.
+    """
+    ab, ac = b - a, c - a
+    n = torch.linalg.cross(ab, ac)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    q = p - ((p - a) * n).sum(-1, keepdim=True) * n  # projection onto the plane
+    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
+    aq = q - a
+    d20, d21 = (aq * ab).sum(-1), (aq * ac).sum(-1)
+    denom = (d00 * d11 - d01 * d01).clamp_min(1e-24)
+    w1, w2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+    inside = torch.stack([1.0 - w1 - w2, w1, w2], -1)
+    candidates, weights = [q], [inside]
+    for i, (s, e) in enumerate(((a, b), (b, c), (c, a))):  # the three edges
+        se = e - s
+        t = (((p - s) * se).sum(-1) / (se * se).sum(-1).clamp_min(1e-24)).clamp(0.0, 1.0)
+        candidates.append(s + t[..., None] * se)
+        w = torch.zeros_like(inside)
+        w[..., i] = 1.0 - t
+        w[..., (i + 1) % 3] = t
+        weights.append(w)
+    is_inside = (inside >= 0).all(-1)
+    dist = torch.stack([((p - cand) ** 2).sum(-1) for cand in candidates], -1)  # [..., 4]
+    dist[..., 0] = torch.where(is_inside, dist[..., 0], torch.full_like(dist[..., 0], float("inf")))
+    best = dist.argmin(-1)
+    point = torch.gather(torch.stack(candidates, -2), -2, best[..., None, None].expand(*best.shape, 1, 3))
+    weight = torch.gather(torch.stack(weights, -2), -2, best[..., None, None].expand(*best.shape, 1, 3))
+    return point.squeeze(-2), weight.squeeze(-2)
+
+
+def faded_penalty(pen: Tensor, thickness: float, stiffness: float) -> tuple[Tensor, Tensor]:
+    """Normal force ``[M]`` and energy ``[M]`` of a penalty that fades out past one thickness.
+
+    ``k pen`` up to ``pen = thickness``, then falling linearly to zero at twice the thickness
+    (a partner that deep is a wrong one: a fold, or the other side of a wrinkle), and zero
+    beyond: a continuous force, so the potential is conservative in the gap.
+    """
+    h = thickness
+    pen = pen.clamp_min(0.0)
+    force = stiffness * torch.where(pen <= h, pen, (2.0 * h - pen).clamp_min(0.0))
+    near = 0.5 * stiffness * pen * pen
+    far = stiffness * h * h - 0.5 * stiffness * (2.0 * h - pen.clamp_max(2.0 * h)) ** 2
+    return force, torch.where(pen <= h, near, far)
+
+
+def ply_on_face_gap(
+    x: Tensor, upper: Tensor, faces: Tensor, triangles: Tensor, thickness: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Penetration of every upper node into the ply below, against its closest candidate face.
+
+    Args:
+        x: Node positions ``[N, 3]``.
+        upper: Upper nodes ``[M]``.
+        faces: Candidate triangles of the ply below per upper node ``[M, K]`` (e.g. those
+            around its nearest node there).
+        triangles: All triangles ``[F, 3]`` (counter-clockwise: normals towards the ply above).
+        thickness: Distance to keep from the face's plane.
+
+    Returns:
+        ``(pen [M], normal [M, 3], corners [M, 3], weights [M, 3], best [M])``: penetration
+        (positive when closer than ``thickness``), the face's unit normal, the face's nodes,
+        the closest point's barycentric weights on them, and which candidate it is.
+    """
+    corners = triangles[faces]  # [M, K, 3]
+    a, b, c = (x[corners[..., i]] for i in range(3))  # [M, K, 3] each
+    p = x[upper][:, None]  # [M, 1, 3]
+    point, weight = closest_points_on_triangles(p, a, b, c)
+    best = ((p - point) ** 2).sum(-1).argmin(1)  # [M]
+    pick = torch.arange(upper.numel(), device=x.device)
+    a, b, c, point, weight = (
+        a[pick, best],
+        b[pick, best],
+        c[pick, best],
+        point[pick, best],
+        weight[pick, best],
+    )
+    n = torch.linalg.cross(b - a, c - a)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    pen = thickness - ((x[upper] - point) * n).sum(-1)
+    return pen, n, corners[pick, best], weight, best
+
+
+def ply_on_face_contact(
+    x: Tensor,
+    v: Tensor,
+    upper: Tensor,
+    faces: Tensor,
+    triangles: Tensor,
+    thickness: float,
+    stiffness: float,
+    mu: float,
+    max_coeff: Tensor,
+    damping: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Node-to-face penalty contact with friction between stacked plies (:func:`ply_on_face_gap`).
+
+    The force on the upper node is balanced on the face's three nodes by the closest point's
+    barycentric weights; the penalty fades out past one thickness (:func:`faded_penalty`);
+    friction and ``damping`` act on the velocity relative to the closest point.
+
+    Returns:
+        Normal, friction and damping forces ``[N, 3]`` each.
+    """
+    pen, n, corners, weight, _ = ply_on_face_gap(x, upper, faces, triangles, thickness)
+    f_n, _ = faded_penalty(pen, thickness, stiffness)
+    v_point = (weight[..., None] * v[corners]).sum(1)  # [M, 3]
+    v_rel = v[upper] - v_point
+    parts = [f_n[:, None] * n, smooth_friction(f_n, v_rel, n, mu, max_coeff)]
+    if damping is not None:
+        parts.append(contact_damping(f_n, v_rel, n, damping))
+    out = []
+    for f in parts:
+        total = torch.zeros_like(x).index_add_(0, upper, f)
+        out.append(total.index_add_(0, corners.reshape(-1), -(weight[..., None] * f[:, None]).reshape(-1, 3)))
+    return out[0], out[1], out[2] if damping is not None else torch.zeros_like(x)

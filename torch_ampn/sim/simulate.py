@@ -21,8 +21,12 @@ from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.contact import (
     contact_damping,
+    faded_penalty,
     height_field_contact,
+    incident_faces,
     nearest_nodes,
+    ply_on_face_contact,
+    ply_on_face_gap,
     ply_on_ply_contact,
     ply_on_ply_normal,
     smooth_friction,
@@ -192,6 +196,8 @@ class LaminateModel:
 
         # Ply-on-ply contact: every node of ply k >= 1 against a nearby node of ply k - 1.
         self.pairs_upper = torch.nonzero(self.layer > 0).squeeze(1)
+        # ply_contact "face": the triangles around a node are the candidate faces of its partners
+        self.node_faces = incident_faces(self.tris, self.x0.size(0))  # [Bn, D]
         self.pairs_lower = torch.zeros_like(self.pairs_upper)
 
         # Lumped masses, and the explicit time step from the stability limit.
@@ -199,6 +205,11 @@ class LaminateModel:
         for i in range(3):
             node_area.index_add_(0, self.tris[:, i], self.membrane.area / 3.0)
         self.mass = (cfg.areal_mass * node_area)[:, None]  # [Bn, 1]
+        if cfg.selective_mass_scaling:
+            # the light edge and corner nodes get the mass that the median node's limit needs
+            stiffness = self.stiffness_bound()
+            target = (stiffness / self.mass[:, 0]).median()  # omega^2
+            self.mass = torch.maximum(self.mass, (stiffness / target)[:, None])
         frame = cfg.duration / cfg.num_steps
         critical = self.critical_time_step()
         if cfg.substeps is None:
@@ -273,18 +284,27 @@ class LaminateModel:
         return float((2.0 / omega * ((1.0 + zeta * zeta).sqrt() - zeta)).min())
 
     def refresh_pairs(self, x: Tensor) -> None:
-        """Pair every node of ply k >= 1 with the nearest node of ply k - 1 of the same copy."""
+        """Choose every ply-on-ply partner for the next saved step (``pairs_lower``, ``[M]``).
+
+        The partner of a node of ply k >= 1 is the nearest node of ply k - 1 of the same copy
+        (``ply_contact = "node"``), or the triangle around that node whose closest point is
+        nearest (``"face"``).
+        """
         lower = []
         for b in range(self.copies):
             for k in range(1, self.cfg.num_plies):
                 start = b * self.n + k * self.per_ply
                 up, low = x[start : start + self.per_ply], x[start - self.per_ply : start]
                 lower.append(nearest_nodes(up, low) + start - self.per_ply)
-        self.pairs_lower = torch.cat(lower)
+        nearest = torch.cat(lower)
         # a pair's friction may stop the relative motion of the lighter node within one step
-        self.pair_friction_cap = (
-            torch.minimum(self.mass[self.pairs_upper], self.mass[self.pairs_lower]) / self.dt
-        )
+        self.pair_friction_cap = torch.minimum(self.mass[self.pairs_upper], self.mass[nearest]) / self.dt
+        if self.cfg.ply_contact == "face":
+            candidates = self.node_faces[nearest]  # [M, D]
+            *_, best = ply_on_face_gap(x, self.pairs_upper, candidates, self.tris, self.cfg.ply_thickness)
+            self.pairs_lower = candidates.gather(1, best[:, None]).squeeze(1)
+        else:
+            self.pairs_lower = nearest
 
     def force_parts(
         self, x: Tensor, v: Tensor, travel: Tensor, punch_speed: float, pairs_lower: Tensor, pair_cap: Tensor
@@ -319,23 +339,36 @@ class LaminateModel:
         punch_damping = contact_damping(f_n, v_rel, normal, self.contact_damping_coeff) if damped else zero
         ply, ply_friction = zero, zero
         if cfg.num_plies > 1:
-            normals = vertex_normals(x, self.tris)
             # the pair's reduced mass (equal masses: half the lighter one's, pair_cap * dt)
             pair_damping = (
                 2.0 * cfg.contact_damping * (0.5 * cfg.contact_stiffness * pair_cap * self.dt).sqrt()
             )
-            ply, ply_friction, ply_damping = ply_on_ply_contact(
-                x,
-                v,
-                self.pairs_upper,
-                pairs_lower,
-                normals,
-                cfg.ply_thickness,
-                cfg.contact_stiffness,
-                cfg.friction_ply,
-                pair_cap,
-                pair_damping if damped else None,
-            )
+            if cfg.ply_contact == "face":
+                ply, ply_friction, ply_damping = ply_on_face_contact(
+                    x,
+                    v,
+                    self.pairs_upper,
+                    pairs_lower[:, None],
+                    self.tris,
+                    cfg.ply_thickness,
+                    cfg.contact_stiffness,
+                    cfg.friction_ply,
+                    pair_cap,
+                    pair_damping if damped else None,
+                )
+            else:
+                ply, ply_friction, ply_damping = ply_on_ply_contact(
+                    x,
+                    v,
+                    self.pairs_upper,
+                    pairs_lower,
+                    vertex_normals(x, self.tris),
+                    cfg.ply_thickness,
+                    cfg.contact_stiffness,
+                    cfg.friction_ply,
+                    pair_cap,
+                    pair_damping if damped else None,
+                )
             damping = damping + ply_damping
         grippers = zero
         if cfg.num_grippers:
@@ -384,9 +417,16 @@ class LaminateModel:
         _, punch_n, _ = height_field_contact(x, punch_z, punch_grad, -1.0, self.punch_offset, k)
         contact = self.per_copy((die_n * die_n + punch_n * punch_n) * half_compliance)
         if cfg.num_plies > 1 and self.pairs_upper.numel():
-            normals = vertex_normals(x, self.tris)
-            ply_n, _ = ply_on_ply_normal(x, self.pairs_upper, pairs_lower, normals, cfg.ply_thickness, k)
-            contact = contact + (ply_n * ply_n * half_compliance).view(self.copies, -1).sum(1)
+            if cfg.ply_contact == "face":
+                pen, *_ = ply_on_face_gap(
+                    x, self.pairs_upper, pairs_lower[:, None], self.tris, cfg.ply_thickness
+                )
+                _, ply_energy = faded_penalty(pen, cfg.ply_thickness, k)
+            else:
+                normals = vertex_normals(x, self.tris)
+                ply_n, _ = ply_on_ply_normal(x, self.pairs_upper, pairs_lower, normals, cfg.ply_thickness, k)
+                ply_energy = ply_n * ply_n * half_compliance
+            contact = contact + ply_energy.view(self.copies, -1).sum(1)
         return torch.stack([kinetic, membrane, bending, contact], 1)
 
     def step_function(
