@@ -1,6 +1,8 @@
 """Benchmark: seconds per trajectory of the embedded simulator, coarse and paper resolution.
 
     python benchmarks/simulate.py --out benchmarks/results/simulate_cpu.json
+    python benchmarks/simulate.py --physics v2 v3 --resolutions coarse --batch 4 --modes compiled \
+        --out benchmarks/results/simulate_v2_v3.json                      # data versions side by side
     python benchmarks/simulate.py --device cuda --resolutions paper --batch 8 32 --modes compiled \\
         --out benchmarks/results/simulate_cuda.json                        # on a GPU
 
@@ -24,6 +26,7 @@ from pathlib import Path
 import torch
 
 from torch_ampn.sim import StampFormingConfig, simulate_batch
+from torch_ampn.sim.config import PHYSICS_V2
 
 from device_info import device_name  # benchmarks/device_info.py, beside this script
 
@@ -48,6 +51,10 @@ def main() -> None:
     parser.add_argument("--modes", nargs="+", default=["eager", "compiled"])
     parser.add_argument("--device", default="cpu", help="where the solver runs (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument(
+        "--physics", nargs="+", default=["v3"], choices=["v2", "v3"],
+        help="the simulator's physics: data version 3 (the default) or 2 (PHYSICS_V2)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/simulate_cpu.json"))
     args = parser.parse_args()
     if args.threads:
@@ -62,8 +69,9 @@ def main() -> None:
     )
     rows = []
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    for res in args.resolutions:
-        cfg = StampFormingConfig.paper() if res == "paper" else StampFormingConfig()
+    for res, physics in ((r, p) for r in args.resolutions for p in args.physics):
+        overrides = PHYSICS_V2 if physics == "v2" else {}
+        cfg = StampFormingConfig.paper(**overrides) if res == "paper" else StampFormingConfig(**overrides)
         for batch in args.batch:
             for mode in args.modes:
                 compile_ = mode == "compiled"
@@ -73,6 +81,7 @@ def main() -> None:
                 rows.append(
                     dict(
                         resolution=res,
+                        physics=physics,
                         nodes=nodes,
                         batch=batch,
                         mode=mode,
@@ -85,7 +94,7 @@ def main() -> None:
                 )
                 write_json(args.out, dict(meta=meta, results=rows))
                 print(
-                    f"{res:>6} {nodes:>6} nodes  batch {batch:>3}  {mode:>8} on {args.device}: "
+                    f"{res:>6} {physics} {nodes:>6} nodes  batch {batch:>3}  {mode:>8} on {args.device}: "
                     f"{per_traj:7.2f} s/trajectory"
                     f"  ({substeps} sub-steps per saved step"
                     f"{f'; first run {first / batch:.2f} s/trajectory' if compile_ else ''})",

@@ -27,7 +27,7 @@ import torch
 
 from torch_ampn.data.io import atomic_write_text
 from torch_ampn.sim import StampFormingConfig, simulate_batch
-from torch_ampn.sim.config import MATERIAL_V1
+from torch_ampn.sim.config import MATERIAL_V1, PHYSICS_V2
 from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
 
@@ -35,7 +35,9 @@ from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, sp
 #: in-plane shear and bending than a thermoplastic tape at forming temperature.
 V1: dict[str, Any] = dict(MATERIAL_V1)
 
-#: Material variants: overrides of StampFormingConfig's defaults (docs/simulator.md, "Material").
+#: Material variants: overrides of the settings of data version 2 (``PHYSICS_V2`` on
+#: StampFormingConfig's defaults; docs/simulator.md, "Material"). The levers of data version 3
+#: (viscosity, the contact) are benchmarks/quasi_static.py's.
 VARIANTS: dict[str, dict[str, Any]] = {
     "default": {},
     "v1": V1,
@@ -91,7 +93,7 @@ def substeps(cfg: StampFormingConfig) -> int:
 
 def measure(name: str, overrides: dict[str, Any], seeds: int, chaos: int, compile: bool) -> dict[str, Any]:
     """Spread, chaos floor, sub-steps and cost of one variant (``diverged`` where the solver blew up)."""
-    cfg = StampFormingConfig.from_dict(overrides)
+    cfg = StampFormingConfig.from_dict({**PHYSICS_V2, **overrides})  # the variants of data versions 1-2
     cfg.validate()
     start = time.perf_counter()
     try:

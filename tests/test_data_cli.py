@@ -57,9 +57,13 @@ def test_blow_up_flags_a_node_carried_past_the_tools_or_jumping_within_a_step():
     far = traj.pos.clone()
     far[-1, node] = far[0, node] + torch.tensor([0.0, 0.0, -1.3 * travel])  # 1.3 x the travel, at the end
     assert "ends 78 mm from its start" in blow_up(_with_pos(traj, far))
+    # 6 saved steps: the punch moves 10 mm in each, so a node may move 0.5 x 60 + 10 = 40 mm in one
     jump = traj.pos.clone()
-    jump[2:, node] += torch.tensor([0.6 * travel, 0.0, 0.0])  # 36 mm in one step, 36 + its own in all
-    assert "moves 36 mm within one saved step" in blow_up(_with_pos(traj, jump))
+    jump[2:, node] += torch.tensor([0.8 * travel, 0.0, 0.0])  # 48 mm in one step, 48 + its own in all
+    assert "moves 48 mm within one saved step" in blow_up(_with_pos(traj, jump))
+    jump = traj.pos.clone()
+    jump[2:, node] += torch.tensor([0.6 * travel, 0.0, 0.0])  # 36 mm: within 40 mm
+    assert blow_up(_with_pos(traj, jump)) is None
 
 
 def _with_pos(traj: Trajectory, pos: torch.Tensor) -> Trajectory:
@@ -256,7 +260,11 @@ def test_energy_command_prints_plots_and_refuses_data_without_a_balance(tmp_path
     saved = Trajectory.load(tmp_path / "data" / "train" / "traj_000000.pt").meta["energy"]
     assert table["traj_000000.pt"]["final"]["work_punch"] == pytest.approx(saved["work_punch"][-1])
     assert "KE/IE" in capsys.readouterr().out
-    # the committed fixtures were simulated before the balance was kept
-    old = split_files(DATA, "train")[0]
+    # a run of another solver (or simulated before the balance was kept) has none
+    traj = Trajectory.load(split_files(DATA, "train")[0])
+    old = tmp_path / "old.pt"
+    Trajectory.from_dict(
+        {**traj.to_dict(), "meta": {k: v for k, v in traj.meta.items() if k != "energy"}}
+    ).save(old)
     assert data_cli.main(["energy", str(old)]) == 2
     assert f"{old}: field 'meta' has no 'energy'" in capsys.readouterr().err

@@ -200,14 +200,15 @@ def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
     from torch_ampn.cli.data import main
     from torch_ampn.sim import simulate_batch
     from torch_ampn.sim.config import StampFormingConfig
-    from torch_ampn.sim.spread import chaos_floor
+    from torch_ampn.sim.spread import chaos_floor, trajectory_rmse
 
     traj = small_runs[0]
     cfg = StampFormingConfig.from_dict(traj.meta["config"])
     again = simulate_batch(cfg, [traj.meta["seed"]], perturbation=0.0)[0]
     assert torch.equal(again.pos, traj.pos)  # eager: the same settings repeat bit for bit
     floor = chaos_floor([traj], perturbation=1e-6)
-    assert 0 < floor["mean"] < 0.1 and floor["count"] == 1
+    # a small but real difference: under a tenth of what the other setting changes (the aim)
+    assert 0 < floor["mean"] < 0.1 * trajectory_rmse(small_runs[1], traj) and floor["count"] == 1
     moved = simulate_batch(cfg, [traj.meta["seed"]], perturbation=1e-6)[0]
     start = (moved.pos[0] - traj.pos[0]).abs()
     assert moved.meta["initial_perturbation"] == 1e-6 and 0 < float(start.max()) <= 1e-5  # float32 rounding

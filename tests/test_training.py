@@ -24,7 +24,7 @@ from torch_ampn.cli.train import main  # noqa: E402
 from torch_ampn.data import NodeType, Trajectory, step_sample  # noqa: E402
 from torch_ampn.rollout import rollout_rmse  # noqa: E402
 from torch_ampn.sim import StampFormingConfig, generate_dataset, simulate_batch  # noqa: E402
-from torch_ampn.sim.config import MATERIAL_V1  # noqa: E402
+from torch_ampn.sim.config import MATERIAL_V1, PHYSICS_V2  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
@@ -746,7 +746,7 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path,
     assert module.surrogate.model.pre[0].mlp_contact.hidden_channels == 8
     # the reference's run is seed 3 of the small setting with the material of its day (data version 1)
     assert StampFormingConfig(**ref["config"]) == small_sim and ref["seed"] == 3
-    traj = simulate_batch(StampFormingConfig(**ref["config"], **MATERIAL_V1), [3])[0]
+    traj = simulate_batch(StampFormingConfig(**ref["config"], **MATERIAL_V1, **PHYSICS_V2), [3])[0]
     cache = HierarchyCache(None, max_levels=ref["max_levels"], min_coarse_nodes=ref["min_coarse_nodes"])
     window = module.surrogate.contact(step_sample(traj, ref["t"], cache(traj)))
     generator = torch.Generator().manual_seed(ref["generator_seed"])

@@ -16,8 +16,17 @@ ADDED_LATER: dict[str, Any] = {
     "ply_contact": "node",
     "selective_mass_scaling": False,
 }
+#: The default physics of data version 2 (2026-12-02 to 2026-12-05): mass-proportional damping
+#: only, ply on ply against the nearest node's plane. With the material of its day
+#: (``StampFormingConfig(**PHYSICS_V2)``, or ``--simulator`` with them) it remakes data of then.
+PHYSICS_V2: dict[str, Any] = {
+    "damping": 20.0,
+    "matrix_viscosity": 0.0,
+    "bending_viscosity": 0.0,
+    "ply_contact": "node",
+}
 #: The default material until 2026-12-02 (data version 1): pass these to reproduce data made
-#: before, e.g. ``StampFormingConfig(**MATERIAL_V1)`` or ``--simulator`` with them.
+#: before, with the physics of then, e.g. ``StampFormingConfig(**MATERIAL_V1, **PHYSICS_V2)``.
 MATERIAL_V1: dict[str, float] = {
     "transverse_stiffness": 100.0,
     "shear_stiffness": 20.0,
@@ -103,11 +112,14 @@ class StampFormingConfig:
     friction_tool: float = 0.3
     friction_ply: float = 0.2
     areal_mass: float = 6e-6
-    damping: float = 20.0
-    matrix_viscosity: float = 0.0
-    bending_viscosity: float = 0.0
+    # the deformation damped by the matrix's and the bending's viscosity, rigid motion little by
+    # the mass; ply on ply against the closest face (data version 3, since 2026-12-05; until
+    # then, data version 2: PHYSICS_V2)
+    damping: float = 2.0
+    matrix_viscosity: float = 0.2
+    bending_viscosity: float = 2.0
     contact_damping: float = 0.0
-    ply_contact: str = "node"
+    ply_contact: str = "face"
     selective_mass_scaling: bool = False
     time_step_safety: float = 0.6
 
@@ -127,7 +139,10 @@ class StampFormingConfig:
         """Settings from a plain ``dict``, e.g. of JSON or YAML (the inverse of :meth:`to_dict`).
 
         Lists become tuples. Settings missing from ``values`` are those of ``base`` (default:
-        the defaults). The result is not validated (see :meth:`validate`).
+        the defaults), except in a complete record (every setting that is not in
+        :data:`ADDED_LATER`: what :meth:`to_dict` wrote, e.g. in an older dataset's
+        ``dataset.json``), where a missing setting added later takes the value that reproduces
+        the physics before it. The result is not validated (see :meth:`validate`).
 
         Args:
             values: Setting name -> value.
@@ -143,6 +158,9 @@ class StampFormingConfig:
         if unknown:
             raise ValueError(f"StampFormingConfig: unknown setting(s) {', '.join(map(repr, unknown))}")
         merged = {**base.to_dict(), **values} if base is not None else dict(values)
+        recorded = {f.name for f in fields(cls)} - set(ADDED_LATER) - {"meta"}
+        if base is None and recorded <= set(values):  # a complete record: written before some settings
+            merged = {**{k: v for k, v in ADDED_LATER.items() if k not in values}, **merged}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()})
 
     @property

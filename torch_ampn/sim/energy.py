@@ -133,11 +133,14 @@ def plot_energy(
             ("friction", "C5"),
             ("external", "k"),
         ):
-            axes[0].plot(x, t[name] / 1000.0, ls, color=colour, label=f"{name} ({label})" if r == 0 else None)
+            axes[0].plot(x, t[name] / 1000.0, ls, color=colour, label=name if r == 0 else None)
         internal = t["internal"].clamp_min(1e-9)
         axes[1].semilogy(x[1:], (t["kinetic"] / internal)[1:], ls, color="C0", label=label)
         work = t["external"].clamp_min(1e-9)
         axes[2].plot(x[1:], (t["damping"] / work)[1:], ls, color="C3", label=label)
+    names = {"-": "solid", "--": "dashed", ":": "dotted", "-.": "dash-dotted"}
+    key = ", ".join(f"{names[styles[r % len(styles)]]}: {label}" for r, (label, _) in enumerate(records))
+    axes[0].set_title(key, fontsize=8)
     axes[0].set(xlabel="time [s]" if times is not None else "saved step", ylabel="energy [J]")
     axes[0].legend(fontsize=7, ncol=2)
     axes[1].axhline(KINETIC_OVER_INTERNAL, color="grey", lw=0.8)
