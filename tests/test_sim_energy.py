@@ -222,7 +222,7 @@ def test_ply_on_face_contact_balances_its_forces_and_pushes_along_the_face_norma
         x,
         v,
         torch.tensor([3]),
-        torch.tensor([[0]]),
+        torch.tensor([0]),
         tris,
         0.5,
         100.0,

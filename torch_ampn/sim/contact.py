@@ -258,6 +258,37 @@ def ply_on_face_gap(
     return pen, n, corners[pick, best], weight, best
 
 
+def face_plane(
+    x: Tensor, upper: Tensor, faces: Tensor, triangles: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each upper node's height above its partner face's plane, and where it projects onto the face.
+
+    Args:
+        x: Node positions ``[N, 3]``.
+        upper: Upper nodes ``[M]``.
+        faces: Each upper node's partner triangle ``[M]`` (e.g. from :func:`ply_on_face_gap`).
+        triangles: All triangles ``[F, 3]`` (counter-clockwise: normals towards the ply above).
+
+    Returns:
+        ``(height [M], normal [M, 3], corners [M, 3], weights [M, 3])``: the signed distance
+        from the face's plane (the same as from the face's closest point, which lies in it),
+        the unit normal, the face's nodes, and the barycentric weights of the node's projection
+        clamped into the face (where the reaction goes and whose velocity friction sees).
+    """
+    corners = triangles[faces]  # [M, 3]
+    a, b, c = x[corners[:, 0]], x[corners[:, 1]], x[corners[:, 2]]
+    ab, ac, ap = b - a, c - a, x[upper] - a
+    n = torch.linalg.cross(ab, ac)
+    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    d20, d21 = (ap * ab).sum(1), (ap * ac).sum(1)
+    denom = (d00 * d11 - d01 * d01).clamp_min(1e-24)
+    w1, w2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+    weights = torch.stack([1.0 - w1 - w2, w1, w2], 1).clamp_min(0.0)
+    weights = weights / weights.sum(1, keepdim=True)
+    return (ap * n).sum(1), n, corners, weights
+
+
 def ply_on_face_contact(
     x: Tensor,
     v: Tensor,
@@ -270,17 +301,18 @@ def ply_on_face_contact(
     max_coeff: Tensor,
     damping: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Node-to-face penalty contact with friction between stacked plies (:func:`ply_on_face_gap`).
+    """Node-to-face penalty contact with friction between stacked plies.
 
-    The force on the upper node is balanced on the face's three nodes by the closest point's
-    barycentric weights; the penalty fades out past one thickness (:func:`faded_penalty`);
-    friction and ``damping`` act on the velocity relative to the closest point.
+    Each upper node keeps ``thickness`` from the plane of its partner face ``faces`` ``[M]``
+    (:func:`face_plane`); the penalty fades out past one thickness (:func:`faded_penalty`);
+    the force on the node is balanced on the face's three nodes by the projection's
+    barycentric weights; friction and ``damping`` act on the velocity relative to that point.
 
     Returns:
         Normal, friction and damping forces ``[N, 3]`` each.
     """
-    pen, n, corners, weight, _ = ply_on_face_gap(x, upper, faces, triangles, thickness)
-    f_n, _ = faded_penalty(pen, thickness, stiffness)
+    height, n, corners, weight = face_plane(x, upper, faces, triangles)
+    f_n, _ = faded_penalty(thickness - height, thickness, stiffness)
     v_point = (weight[..., None] * v[corners]).sum(1)  # [M, 3]
     v_rel = v[upper] - v_point
     parts = [f_n[:, None] * n, smooth_friction(f_n, v_rel, n, mu, max_coeff)]

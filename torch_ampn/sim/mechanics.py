@@ -88,24 +88,39 @@ class OrthotropicMembrane:
         s_aa = torch.where(e_aa < 0, comp * cf, cf) * e_aa
         return self._corner_forces(fa, fb, s_aa, ct * e_bb, cs * e_ab)
 
-    def strain_rates(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``F a``, ``F b`` ``[F, 3]`` and the transverse and shear strain rates ``dE_bb, dE_ab`` ``[F]``."""
-        fa, fb, _, _, _ = self.strains(x)
+    def strain_rates(
+        self, x: Tensor, v: Tensor, frame: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``F a``, ``F b`` ``[F, 3]`` and the transverse and shear strain rates ``dE_bb, dE_ab`` ``[F]``.
+
+        ``frame``: ``(F a, F b)`` at ``x`` if already at hand (:meth:`strains`).
+        """
+        fa, fb = self.strains(x)[:2] if frame is None else frame
         v0 = v[self.tri[:, 0]]
         w1, w2 = v[self.tri[:, 1]] - v0, v[self.tri[:, 2]] - v0
         dfa = self.alpha[0] * w1 + self.alpha[1] * w2
         dfb = self.beta[0] * w1 + self.beta[1] * w2
         return fa, fb, (fb * dfb).sum(1), 0.5 * ((fa * dfb).sum(1) + (fb * dfa).sum(1))
 
-    def viscous_forces(self, x: Tensor, v: Tensor) -> Tensor:
+    def viscous_forces(self, x: Tensor, v: Tensor, frame: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Matrix-viscosity forces ``[N, 3]`` at positions ``x`` and velocities ``v`` ``[N, 3]``.
 
         ``-dD/dv`` of the dissipation potential ``D = A_0 eta (dE_bb^2 / 2 + dE_ab^2)``; their
-        power ``f . v = -2 D`` is never positive.
+        power ``f . v = -2 D`` is never positive. ``frame``: as in :meth:`strain_rates`.
         """
-        fa, fb, r_bb, r_ab = self.strain_rates(x, v)
+        fa, fb, r_bb, r_ab = self.strain_rates(x, v, frame)
         eta = self.viscosity
         return self._corner_forces(fa, fb, torch.zeros_like(r_bb), eta * r_bb, eta * r_ab)
+
+    def forces_and_viscous(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`forces` and :meth:`viscous_forces` (zero without viscosity), the strains computed once."""
+        cf, ct, cs, comp = self.c
+        fa, fb, e_aa, e_bb, e_ab = self.strains(x)
+        s_aa = torch.where(e_aa < 0, comp * cf, cf) * e_aa
+        elastic = self._corner_forces(fa, fb, s_aa, ct * e_bb, cs * e_ab)
+        if self.viscosity == 0:
+            return elastic, torch.zeros_like(elastic)
+        return elastic, self.viscous_forces(x, v, (fa, fb))
 
     def cell_energy(self, x: Tensor) -> Tensor:
         """Membrane energy of every triangle ``[F]`` (N mm)."""

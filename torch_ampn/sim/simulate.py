@@ -21,6 +21,7 @@ from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.contact import (
     contact_damping,
+    face_plane,
     faded_penalty,
     height_field_contact,
     incident_faces,
@@ -312,10 +313,8 @@ class LaminateModel:
         """Every force on every ply node, ``[Bn, 3]`` each (``travel``: punch travel, 0-dim tensor)."""
         cfg = self.cfg
         zero = torch.zeros_like(x)
-        elastic = self.membrane.forces(x) + self.bending.forces(x)
-        viscous = zero
-        if cfg.matrix_viscosity > 0:
-            viscous = viscous + self.membrane.viscous_forces(x, v)
+        membrane, viscous = self.membrane.forces_and_viscous(x, v)
+        elastic = membrane + self.bending.forces(x)
         if cfg.bending_viscosity > 0:
             viscous = viscous + self.bending.viscous_forces(v)
         xy = x[:, :2]
@@ -348,7 +347,7 @@ class LaminateModel:
                     x,
                     v,
                     self.pairs_upper,
-                    pairs_lower[:, None],
+                    pairs_lower,
                     self.tris,
                     cfg.ply_thickness,
                     cfg.contact_stiffness,
@@ -418,10 +417,8 @@ class LaminateModel:
         contact = self.per_copy((die_n * die_n + punch_n * punch_n) * half_compliance)
         if cfg.num_plies > 1 and self.pairs_upper.numel():
             if cfg.ply_contact == "face":
-                pen, *_ = ply_on_face_gap(
-                    x, self.pairs_upper, pairs_lower[:, None], self.tris, cfg.ply_thickness
-                )
-                _, ply_energy = faded_penalty(pen, cfg.ply_thickness, k)
+                height, *_ = face_plane(x, self.pairs_upper, pairs_lower, self.tris)
+                _, ply_energy = faded_penalty(cfg.ply_thickness - height, cfg.ply_thickness, k)
             else:
                 normals = vertex_normals(x, self.tris)
                 ply_n, _ = ply_on_ply_normal(x, self.pairs_upper, pairs_lower, normals, cfg.ply_thickness, k)
