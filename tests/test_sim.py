@@ -278,3 +278,17 @@ def test_a_clamp_shares_the_gripper_force_over_the_nodes_within_its_radius():
         clamp.gripper_pull, torch.tensor(pull, dtype=torch.float64), rtol=1e-15, atol=0
     )
     assert clamp.gripper_pull.sum() == pytest.approx(float(force.sum()))  # all of the force, shared
+
+
+def test_a_record_written_before_settings_existed_reads_back_with_the_physics_of_its_day():
+    """A complete ``to_dict`` of data version 2, as its ``dataset.json`` holds it (without the
+    settings added since), gives data version 2's physics; a partial dict overrides the defaults."""
+    from torch_ampn.sim.config import ADDED_LATER, PHYSICS_V2
+
+    v2 = StampFormingConfig(**PHYSICS_V2)
+    record = {k: v for k, v in v2.to_dict().items() if k not in ADDED_LATER}
+    assert StampFormingConfig.from_dict(record) == v2
+    assert StampFormingConfig.from_dict(record).ply_contact == "node"
+    partial = StampFormingConfig.from_dict({"ply_cells": 5})
+    assert partial.ply_contact == StampFormingConfig().ply_contact == "face"
+    assert partial.matrix_viscosity == StampFormingConfig().matrix_viscosity > 0

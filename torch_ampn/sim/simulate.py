@@ -388,12 +388,6 @@ class LaminateModel:
             punch_damping,
         )
 
-    def forces(
-        self, x: Tensor, v: Tensor, travel: Tensor, punch_speed: float, pairs_lower: Tensor, pair_cap: Tensor
-    ) -> Tensor:
-        """Total force on every ply node ``[Bn, 3]`` (``travel``: punch travel, 0-dim tensor)."""
-        return sum(self.force_parts(x, v, travel, punch_speed, pairs_lower, pair_cap))
-
     def per_copy(self, values: Tensor) -> Tensor:
         """Sums of per-node ``values`` ``[Bn]`` over each copy, ``[B]``."""
         return values.view(self.copies, -1).sum(1)
@@ -435,9 +429,9 @@ class LaminateModel:
         ``v' = (v + dt f / m) / (1 + c dt)``, ``x' = x + dt v'``; symmetry constraints zero the
         constrained velocity components of nodes on the planes, and no node may cross them.
         ``work`` ``[B, 6]`` is what the sub-step added to the path terms of the energy balance
-        (:data:`torch_ampn.sim.energy.WORK_TERMS`, N mm) per copy: each force's power on ``v'``
-        times ``dt``, on the sub-step's mean velocity ``(v + v') / 2`` (the punch's on the punch's
-        velocity; friction's on the relative velocity).
+        (:data:`torch_ampn.sim.energy.WORK_TERMS`, N mm) per copy: each force's power on the
+        sub-step's mean velocity ``(v + v') / 2`` times ``dt`` (the punch's on the punch's velocity;
+        friction's and the contact damping's on the relative velocity).
         """
         inv_mass_dt = self.dt / self.mass  # [Bn, 1]
         damp_free = self.free / (1.0 + self.cfg.damping * self.dt)  # [Bn, 3]
