@@ -27,7 +27,7 @@ from torch_ampn.sim.config import StampFormingConfig
 
 #: The aims of a dataset whose settings matter: spread at least this many times the chaos
 #: floor, and at least this many mm.
-SPREAD_OVER_FLOOR, SPREAD_MM = 5.0, 1.0
+SPREAD_OVER_FLOOR, SPREAD_MM = 10.0, 1.0
 #: A blown-up run: a ply node farther from its start than this many times the tools' travel
 #: (healthy coarse runs of the default part: at most 0.9, the dome's depth; draw-in adds little),
 #: or moving within one saved step more than this fraction of it beyond the tools' own motion in
