@@ -122,12 +122,19 @@ def ply_on_ply_contact(
         of a pair).
     """
     f_n, n = ply_on_ply_normal(x, upper, lower, normals, thickness, stiffness)
-    v_rel = v[upper] - v[lower]
+    parts = _pair_forces(f_n, n, v[upper] - v[lower], mu, max_coeff, damping)
+    out = [torch.zeros_like(x).index_add_(0, upper, f).index_add_(0, lower, -f) for f in parts]
+    return out[0], out[1], out[2] if damping is not None else torch.zeros_like(x)
+
+
+def _pair_forces(
+    f_n: Tensor, n: Tensor, v_rel: Tensor, mu: float, max_coeff: Tensor, damping: Tensor | None
+) -> list[Tensor]:
+    """A pair's normal, friction and (with ``damping``) damping force on the upper node, ``[M, 3]`` each."""
     parts = [f_n[:, None] * n, smooth_friction(f_n, v_rel, n, mu, max_coeff)]
     if damping is not None:
         parts.append(contact_damping(f_n, v_rel, n, damping))
-    out = [torch.zeros_like(x).index_add_(0, upper, f).index_add_(0, lower, -f) for f in parts]
-    return out[0], out[1], out[2] if damping is not None else torch.zeros_like(x)
+    return parts
 
 
 def contact_damping(f_normal: Tensor, v_rel: Tensor, normal: Tensor, coeff: Tensor) -> Tensor:
@@ -166,6 +173,15 @@ def incident_faces(triangles: Tensor, num_nodes: int) -> Tensor:
     return torch.where(pad, first, out)
 
 
+def _barycentric(ab: Tensor, ac: Tensor, ap: Tensor) -> Tensor:
+    """Barycentric weights ``[..., 3]`` of the in-plane part of ``ap`` in the triangle ``(ab, ac)``."""
+    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
+    d20, d21 = (ap * ab).sum(-1), (ap * ac).sum(-1)
+    denom = (d00 * d11 - d01 * d01).clamp_min(1e-24)
+    w1, w2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+    return torch.stack([1.0 - w1 - w2, w1, w2], -1)
+
+
 def closest_points_on_triangles(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     """Closest point to ``p`` on each triangle ``(a, b, c)`` and its barycentric weights.
 
@@ -182,12 +198,7 @@ def closest_points_on_triangles(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> t
     n = torch.linalg.cross(ab, ac)
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     q = p - ((p - a) * n).sum(-1, keepdim=True) * n  # projection onto the plane
-    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
-    aq = q - a
-    d20, d21 = (aq * ab).sum(-1), (aq * ac).sum(-1)
-    denom = (d00 * d11 - d01 * d01).clamp_min(1e-24)
-    w1, w2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
-    inside = torch.stack([1.0 - w1 - w2, w1, w2], -1)
+    inside = _barycentric(ab, ac, q - a)
     candidates, weights = [q], [inside]
     for i, (s, e) in enumerate(((a, b), (b, c), (c, a))):  # the three edges
         se = e - s
@@ -280,11 +291,7 @@ def face_plane(
     ab, ac, ap = b - a, c - a, x[upper] - a
     n = torch.linalg.cross(ab, ac)
     n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
-    d20, d21 = (ap * ab).sum(1), (ap * ac).sum(1)
-    denom = (d00 * d11 - d01 * d01).clamp_min(1e-24)
-    w1, w2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
-    weights = torch.stack([1.0 - w1 - w2, w1, w2], 1).clamp_min(0.0)
+    weights = _barycentric(ab, ac, ap).clamp_min(0.0)
     weights = weights / weights.sum(1, keepdim=True)
     return (ap * n).sum(1), n, corners, weights
 
@@ -314,10 +321,7 @@ def ply_on_face_contact(
     height, n, corners, weight = face_plane(x, upper, faces, triangles)
     f_n, _ = faded_penalty(thickness - height, thickness, stiffness)
     v_point = (weight[..., None] * v[corners]).sum(1)  # [M, 3]
-    v_rel = v[upper] - v_point
-    parts = [f_n[:, None] * n, smooth_friction(f_n, v_rel, n, mu, max_coeff)]
-    if damping is not None:
-        parts.append(contact_damping(f_n, v_rel, n, damping))
+    parts = _pair_forces(f_n, n, v[upper] - v_point, mu, max_coeff, damping)
     out = []
     for f in parts:
         total = torch.zeros_like(x).index_add_(0, upper, f)
