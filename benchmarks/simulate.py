@@ -31,9 +31,12 @@ from torch_ampn.sim.config import PHYSICS_V2
 from device_info import device_name  # benchmarks/device_info.py, beside this script
 
 
-def timed(cfg: StampFormingConfig, batch: int, compile_: bool, device: str) -> tuple[float, int, int]:
+def timed(
+    cfg: StampFormingConfig, batch: int, compile_: bool, device: str, seed: int = 0
+) -> tuple[float, int, int]:
     t0 = time.perf_counter()
-    trajs = simulate_batch(cfg, list(range(batch)), compile=compile_, device=device)  # CPU results: synced
+    # CPU results: synced
+    trajs = simulate_batch(cfg, list(range(seed, seed + batch)), compile=compile_, device=device)
     return time.perf_counter() - t0, trajs[0].num_nodes, trajs[0].meta["substeps"]
 
 
@@ -51,6 +54,7 @@ def main() -> None:
     parser.add_argument("--modes", nargs="+", default=["eager", "compiled"])
     parser.add_argument("--device", default="cpu", help="where the solver runs (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0, help="the first setting's seed (then seed + 1, ...)")
     parser.add_argument(
         "--physics", nargs="+", default=["v3"], choices=["v2", "v3"],
         help="the simulator's physics: data version 3 (the default) or 2 (PHYSICS_V2)",
@@ -65,6 +69,7 @@ def main() -> None:
         machine=platform.machine(),
         device=device_name(args.device),
         threads=torch.get_num_threads(),
+        seed=args.seed,
         torch=torch.__version__,
     )
     rows = []
@@ -75,8 +80,15 @@ def main() -> None:
         for batch in args.batch:
             for mode in args.modes:
                 compile_ = mode == "compiled"
-                first = timed(cfg, batch, True, args.device)[0] if compile_ else None
-                seconds, nodes, substeps = timed(cfg, batch, compile_, args.device)
+                try:
+                    first = timed(cfg, batch, True, args.device, args.seed)[0] if compile_ else None
+                    seconds, nodes, substeps = timed(cfg, batch, compile_, args.device, args.seed)
+                except FloatingPointError as err:  # a run that blows up is a result, too
+                    failed = dict(resolution=res, physics=physics, batch=batch, mode=mode, diverged=str(err))
+                    rows.append(failed)
+                    write_json(args.out, dict(meta=meta, results=rows))
+                    print(f"{res:>6} {physics} batch {batch:>3} {mode:>8}: {err}", flush=True)
+                    continue
                 per_traj = seconds / batch
                 rows.append(
                     dict(

@@ -160,6 +160,20 @@ def test_a_d3plot_of_our_own_making(tmp_path):
     torch.testing.assert_close(traj.fiber[:3], torch.tensor([[1.0, 0, 0]]).expand(3, 3))
 
 
+def test_a_d3plot_whose_parts_have_titles_only(tmp_path):
+    """lasso then reads ``part_titles_ids`` and no ``part_ids``: the ids come from the titles section."""
+    plot = _tiny_plot()
+    del plot.arrays[A.part_ids]
+    plot.arrays[A.part_titles_ids] = np.array([7, 3], np.int32)  # internal order: part 7, then part 3
+    plot.arrays[A.part_titles] = np.array([b"ply".ljust(72), b"punch".ljust(72)])
+    plot.write_d3plot(str(tmp_path / "d3plot"))
+    assert A.part_ids not in D3plot(str(tmp_path / "d3plot")).arrays
+    spec = {"parts": {7: {"type": "ply", "fiber_angle": 0}, 3: {"type": "punch"}}}
+    traj = read_d3plot(tmp_path / "d3plot", spec)
+    assert traj.names == ["ply", "punch"] and traj.node_type.tolist() == [0, 0, 0, 1, 1, 1, 1]
+    assert [c.tolist() for c in traj.cells] == [[[0, 1, 2]], [[3, 4, 5, 6]]]
+
+
 def test_unsupported_d3plots_are_refused_in_one_line(tmp_path):
     shared = _tiny_plot()
     shared.arrays[A.element_shell_node_indexes] = np.array([[0, 1, 2, 2], [2, 4, 5, 6]], np.int32)
@@ -171,10 +185,13 @@ def test_unsupported_d3plots_are_refused_in_one_line(tmp_path):
     solid.arrays[A.element_solid_ids] = np.array([9], np.int32)
     eroded = _tiny_plot()
     eroded.arrays[A.element_shell_is_alive] = np.array([[1, 1], [1, 0]], np.float32)
+    no_ids = _tiny_plot()
+    del no_ids.arrays[A.part_ids]
     for name, plot, message in [
         ("solid", solid, r"field 'element_solid_node_indexes': 1 solid or thick-shell elements"),
         ("eroded", eroded, r"field 'element_shell_is_alive': 1 shell elements are deleted"),
         ("shared", shared, r"node id 3 belongs to parts 1 and 2"),
+        ("no_ids", no_ids, r"field 'part_ids': the d3plot names no part ids"),
         (
             "no_states",
             no_states,

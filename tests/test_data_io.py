@@ -44,3 +44,24 @@ def test_atomic_files_keep_the_old_content_on_error(tmp_path):
     atomic_write_text(text, "two")
     assert text.read_text() == "two"
     assert _leftovers(tmp_path / "a") == [] and sorted(p.name for p in tmp_path.iterdir()) == ["a", "t.txt"]
+
+
+def test_written_files_get_the_mode_a_plain_open_gives(tmp_path):
+    """Not tempfile's 0600 / 0700: colleagues in the group may read a shared dataset."""
+    import os
+    import stat
+
+    old = os.umask(0o027)  # this test sets the mask itself, and puts it back
+    try:
+        (tmp_path / "plain.txt").write_text("x")
+        (tmp_path / "plain").mkdir()
+        atomic_write_text(tmp_path / "a.txt", "x")
+        atomic_torch_save({"x": torch.zeros(1)}, tmp_path / "b.pt")
+        with atomic_folder(tmp_path / "folder") as tmp:
+            (tmp / "c.txt").write_text("x")
+    finally:
+        os.umask(old)
+    mode = lambda p: stat.S_IMODE(p.stat().st_mode)  # noqa: E731
+    assert mode(tmp_path / "plain.txt") == 0o640 and mode(tmp_path / "plain") == 0o750
+    assert mode(tmp_path / "a.txt") == mode(tmp_path / "b.pt") == 0o640
+    assert mode(tmp_path / "folder") == 0o750 and mode(tmp_path / "folder" / "c.txt") == 0o640

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -38,12 +37,6 @@ def _measure(values: list[str]) -> str | dict[str, float]:
         except ValueError:
             raise ValueError(f"--measure {v!r}: the weight after '=' must be a number") from None
     return out
-
-
-def _write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, path)
 
 
 def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
@@ -86,6 +79,7 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
 
 def run(args: argparse.Namespace) -> dict:
     """The design study the arguments describe; returns what ``design.json`` holds."""
+    from torch_ampn.data.io import atomic_write_text
     from torch_ampn.data.meshio_io import export_xdmf
     from torch_ampn.design import (
         MEASURES,
@@ -188,7 +182,7 @@ def run(args: argparse.Namespace) -> dict:
     plot_measure_maps(
         args.out / "fields.png", top_trajs[0], finals, shown, f"{shown} at the best setting (final state)"
     )
-    _write_json(args.out / "design.json", report)
+    atomic_write_text(args.out / "design.json", json.dumps(report, indent=2))
     return report
 
 

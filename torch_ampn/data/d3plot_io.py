@@ -101,8 +101,19 @@ def read_d3plot(path: str | os.PathLike, part_map: str | os.PathLike | Mapping |
     shells = np.asarray(arrays.get(A.element_shell_node_indexes, np.empty((0, 4), np.int32)), dtype=np.int64)
     if shells.size == 0:
         raise TrajectoryFormatError(f"{path}: field 'element_shell_node_indexes': the d3plot has no shells")
-    part_ids = np.asarray(arrays[A.part_ids], dtype=np.int64)
-    shell_part = part_ids[np.asarray(arrays[A.element_shell_part_indexes], dtype=np.int64)]  # [E]
+    part_ids = _part_ids(path, arrays, A)
+    shell_index = np.asarray(arrays.get(A.element_shell_part_indexes, np.empty(0)), dtype=np.int64)
+    if shell_index.shape != (shells.shape[0],) or shell_index.min(initial=0) < 0:
+        raise TrajectoryFormatError(
+            f"{path}: field 'element_shell_part_indexes': {shell_index.shape[0]} part indexes for "
+            f"{shells.shape[0]} shells"
+        )
+    if shell_index.max(initial=-1) >= part_ids.size:
+        raise TrajectoryFormatError(
+            f"{path}: field 'element_shell_part_indexes': part index {int(shell_index.max())} but "
+            f"{part_ids.size} parts"
+        )
+    shell_part = part_ids[shell_index]  # [E]
     node_ids = np.asarray(arrays.get(A.node_ids, np.arange(1, disp.shape[1] + 1)), dtype=np.int64)
     coords = np.asarray(arrays[A.node_coordinates], dtype=np.float64)
     states = np.asarray(disp, dtype=np.float64)
@@ -127,6 +138,21 @@ def read_d3plot(path: str | os.PathLike, part_map: str | os.PathLike | Mapping |
         times,
         _part_titles(arrays, A),
         "element_shell_node_indexes",
+    )
+
+
+def _part_ids(path: str | os.PathLike, arrays: Mapping, A: Any) -> np.ndarray:
+    """The parts' ids in their internal order ``[P]``: lasso's ``part_ids``, else those of the titles section.
+
+    A d3plot whose parts come with titles only gives lasso ``part_titles_ids`` and no ``part_ids``;
+    both list the parts in the order that ``element_shell_part_indexes`` counts.
+    """
+    for field in (A.part_ids, A.part_titles_ids):
+        ids = arrays.get(field)
+        if ids is not None and np.size(ids):
+            return np.asarray(ids, dtype=np.int64).reshape(-1)
+    raise TrajectoryFormatError(
+        f"{path}: field 'part_ids': the d3plot names no part ids (neither 'part_ids' nor 'part_titles_ids')"
     )
 
 

@@ -14,6 +14,29 @@ from typing import IO
 import torch
 
 
+def _umask() -> int:
+    """The process's file-mode creation mask, read without changing it where Linux tells it."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting it, and set it back at once
+    os.umask(mask)
+    return mask
+
+
+def plain_mode(path: str | os.PathLike, folder: bool = False) -> None:
+    """Give ``path`` the mode a plain ``open`` (or ``mkdir``) would: 0666 (0777) less the umask.
+
+    ``tempfile`` makes its files 0600 and its folders 0700, and a rename keeps the mode, so
+    without this an atomically written dataset could not be read by the owner's colleagues.
+    """
+    os.chmod(path, (0o777 if folder else 0o666) & ~_umask())
+
+
 @contextlib.contextmanager
 def _atomic_file(path: str | os.PathLike, mode: str) -> Iterator[IO]:
     """An open temporary file beside ``path`` that replaces it when the block ends without error."""
@@ -23,6 +46,7 @@ def _atomic_file(path: str | os.PathLike, mode: str) -> Iterator[IO]:
     try:
         with os.fdopen(fd, mode) as f:
             yield f
+        plain_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -64,6 +88,7 @@ def atomic_folder(folder: str | os.PathLike, prefix: str = ".tmp-") -> Iterator[
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=prefix))
     try:
         yield tmp
+        plain_mode(tmp, folder=True)
         if folder.exists():
             shutil.rmtree(folder)
         os.replace(tmp, folder)

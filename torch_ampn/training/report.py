@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import os
 from pathlib import Path
@@ -211,12 +212,11 @@ class TestReport:
             raise RuntimeError("no test trajectories were rolled out")
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / "test_rmse.csv"
-        tmp = path.with_name(f".{path.name}.tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(self.rows[0]))
-            writer.writeheader()
-            writer.writerows(self.rows)
-        os.replace(tmp, path)
+        table = io.StringIO(newline="")
+        writer = csv.DictWriter(table, fieldnames=list(self.rows[0]))
+        writer.writeheader()
+        writer.writerows(self.rows)
+        atomic_write_text(path, table.getvalue())
         summary = self.summary()
         atomic_write_text(self.folder / "test_summary.json", json.dumps(summary, indent=2))
         atomic_write_text(self.folder / "rmse_over_time.csv", self.over_time_csv())
