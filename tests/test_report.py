@@ -81,3 +81,29 @@ def test_cli_after_fit_warns_and_with_the_main_jobs_setting_exits_3(monkeypatch,
     monkeypatch.delenv("AMPN_REQUIRE_PLANNED_STEPS")
     cli.after_fit()  # a user's own fit: the line only
     assert "WARNING" in capsys.readouterr().err
+
+
+def test_the_error_picture_draws_the_baselines_that_use_the_training_data(tmp_path):
+    """The model is drawn beside the trivial and the setting-aware baselines, each line their mean curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import torch
+
+    from torch_ampn.training.report import TestReport
+
+    report = TestReport(tmp_path)
+    curves = {
+        "model": [torch.tensor([0.0, 1.0, 2.0]), torch.tensor([0.0, 3.0, 4.0])],
+        "static": [torch.tensor([0.0, 5.0, 9.0])] * 2,
+        "pod_gp": [torch.tensor([0.0, 0.5, 1.0]), torch.tensor([0.0, 1.5, 2.0])],
+        "mean_trajectory": [torch.tensor([0.0, 4.0, 6.0])] * 2,
+    }
+    report.curves = curves
+    fig = report.over_time_figure({})
+    (ax,) = fig.axes
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["model", "static", "mean_trajectory", "pod_gp"]
+    lines = {line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")}
+    assert lines["pod_gp"].get_ydata().tolist() == [0.0, 1.0, 1.5] and lines["pod_gp"].get_linestyle() == "--"
+    assert lines["model"].get_ydata().tolist() == [0.0, 2.0, 3.0]

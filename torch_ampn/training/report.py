@@ -8,6 +8,7 @@ import io
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -259,27 +260,46 @@ class TestReport:
         return "\n".join(lines) + "\n"
 
     def plot_over_time(self, path: Path, summary: dict[str, float]) -> None:
-        """Mean RMSE per step of the model and the baselines (thin lines: single trajectories)."""
+        """Write :meth:`over_time_figure` to ``path``."""
+        plt = _figure()
+        fig = self.over_time_figure(summary)
+        atomic_savefig(fig, path)
+        plt.close(fig)
+
+    def over_time_figure(self, summary: dict[str, float]) -> Any:
+        """Mean RMSE per step of the model and every baseline (thin lines: the model's single trajectories).
+
+        The setting-aware baselines (dashed) use the training data as the model does: where one of
+        them is better than the model, the picture shows it, as the table does.
+        """
         plt = _figure()
         fig, ax = plt.subplots(figsize=(7.5, 4.5))
-        names = ["model", "static"]
+        trivial = ["static"]
         if "rigid_touch_radius" in summary:
-            names.append(f"rigid_r{summary['rigid_touch_radius']:g}")
-        for name, color in zip(names, ("C0", "C1", "C2"), strict=False):
+            trivial.append(f"rigid_r{summary['rigid_touch_radius']:g}")
+        aware = [k for k in SETTING_BASELINES if k in self.curves]
+        styles = {"model": ("C0", "-")}
+        styles.update({k: (f"C{i + 1}", ":") for i, k in enumerate(trivial)})
+        styles.update({k: (f"C{i + 1 + len(trivial)}", "--") for i, k in enumerate(aware)})
+        for name, (color, style) in styles.items():
+            if name not in self.curves:
+                continue
             curves = torch.stack(self.curves[name])  # [n, T+1]
             steps = torch.arange(curves.size(1))
-            for c in curves:
-                ax.plot(steps, c, color=color, alpha=0.25, lw=0.8)
-            ax.plot(steps, curves.mean(0), color=color, lw=2, label=name)
+            if name == "model":
+                for c in curves:
+                    ax.plot(steps, c, color=color, alpha=0.25, lw=0.8)
+            ax.plot(
+                steps, curves.mean(0), color=color, ls=style, lw=2.5 if name == "model" else 1.6, label=name
+            )
         ax.set_xlabel("step")
         ax.set_ylabel("RMSE over ply nodes [mm]")
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
-        ax.legend()
-        ax.set_title("Autoregressive rollout error on the test trajectories")
+        ax.legend(fontsize=8, ncol=2)
+        ax.set_title("Rollout error on the test trajectories (dashed: baselines that use the training data)")
         fig.tight_layout()
-        atomic_savefig(fig, path)
-        plt.close(fig)
+        return fig
 
 
 def write_prediction(
