@@ -20,8 +20,8 @@ from pathlib import Path
 
 from torch_ampn.baselines import rollout_mse, setting_baselines, setting_effect_r2
 from torch_ampn.data import TrajectoryDataset
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.rollout import rollout_rmse
+from torch_ampn.utils.io import atomic_write_text
 
 
 def evaluate(data_dir: Path, test_split: str = "test", train_limit: int | None = None) -> dict:

@@ -16,10 +16,10 @@ import datetime
 import json
 from pathlib import Path
 
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.sim import StampFormingConfig, simulate_batch
 from torch_ampn.sim.config import PHYSICS_V2
 from torch_ampn.sim.energy import energy_summary, plot_energy
+from torch_ampn.utils.io import atomic_write_text
 
 PHYSICS = {"data version 2": PHYSICS_V2, "data version 3": {}}
 

@@ -26,8 +26,8 @@ import torch
 
 from torch_ampn.baselines import PODRegression
 from torch_ampn.data import TrajectoryDataset
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.rollout import rollout_rmse
+from torch_ampn.utils.io import atomic_write_text
 
 
 def test_rmse(model: PODRegression, test: list) -> float:

@@ -37,7 +37,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torch_ampn.data.hierarchical_data import edge_type
+from torch_ampn.hierarchy.hierarchical_data import edge_type
 
 MESH_EDGE_CHANNELS = 8  # torch_ampn.forming.features.EDGE_FEATURES_WITH_INITIAL
 CONTACT_EDGE_CHANNELS = 4  # torch_ampn.forming.features.EDGE_FEATURES_CURRENT

@@ -34,11 +34,11 @@ from typing import Any
 
 import torch
 
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.sim import StampFormingConfig, simulate_batch
 from torch_ampn.sim.config import PHYSICS_V2
 from torch_ampn.sim.energy import energy_summary
 from torch_ampn.sim.spread import blow_up, format_reliability, setting_spread, two_run_reliability
+from torch_ampn.utils.io import atomic_write_text
 
 #: First seed of the settings: no dataset split uses it (train 0.., val 100000.., test 200000..).
 FIRST_SEED = 900_000

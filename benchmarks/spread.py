@@ -25,11 +25,11 @@ from typing import Any
 
 import torch
 
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.sim import StampFormingConfig, simulate_batch
 from torch_ampn.sim.config import MATERIAL_V1, PHYSICS_V2
 from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 from torch_ampn.sim.spread import chaos_floor, format_report, setting_spread, spread_report
+from torch_ampn.utils.io import atomic_write_text
 
 #: The default material until 2026-12-02 (data version 1): far stiffer in transverse tension,
 #: in-plane shear and bending than a thermoplastic tape at forming temperature.

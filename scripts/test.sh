@@ -9,6 +9,8 @@ source scripts/install.sh
 echo "[test] ruff check, ruff format --check (Python, notebooks and the Markdown code blocks)"
 ruff check .
 ruff format --check .
+echo "[test] lint-imports (the generic core imports nothing of the forming application)"
+lint-imports
 echo "[test] pytest"
 export MPLBACKEND=Agg
 # One pytest worker per core (pytest-xdist), each with one thread: torch's OpenMP threads

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torch_ampn.data.io import atomic_folder, atomic_torch_save, atomic_write_text
+from torch_ampn.utils.io import atomic_folder, atomic_torch_save, atomic_write_text
 
 
 def _leftovers(folder):

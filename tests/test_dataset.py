@@ -4,7 +4,7 @@ from torch_geometric.loader import DataLoader
 
 from torch_ampn.data import HierarchicalData, StepDataset, TrajectoryDataset, step_sample
 from torch_ampn.data import dataset as dataset_module
-from torch_ampn.data import hierarchy as hierarchy_module
+from torch_ampn.hierarchy import amg as hierarchy_module
 from torch_ampn.testing import small_trajectory
 
 

@@ -8,8 +8,8 @@ import torch
 from torch_geometric.data import Batch
 
 from torch_ampn.data import build_hierarchy, laminate_mesh, stacked_plates
-from torch_ampn.data import hierarchy as hierarchy_module
-from torch_ampn.data.hierarchy import SMOOTHERS, mesh_operator
+from torch_ampn.hierarchy import amg as hierarchy_module
+from torch_ampn.hierarchy.amg import SMOOTHERS, mesh_operator
 
 
 def _pattern(ei: torch.Tensor, n: int, m: int | None = None) -> sp.csr_matrix:

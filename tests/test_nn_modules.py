@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+import torch_ampn.nn
 from torch_ampn.forming import Normalizer
 from torch_ampn.nn import FourierLevelEncoding, LayerNormMLP
 
@@ -86,14 +87,23 @@ def test_normalizer_without_centering_only_scales():
     assert "center=False" in repr(norm)
 
 
-def test_the_forming_names_still_import_from_nn_with_a_warning():
-    import torch_ampn.forming
-    import torch_ampn.nn
+def test_the_generic_core_loads_nothing_of_the_forming_application():
+    """``import torch_ampn.nn`` (and the hierarchy, the transforms) in a fresh interpreter."""
+    import subprocess
+    import sys
 
-    with pytest.warns(FutureWarning, match="torch_ampn.nn.AMPNSurrogate moved to torch_ampn.forming"):
-        assert torch_ampn.nn.AMPNSurrogate is torch_ampn.forming.AMPNSurrogate
-    with pytest.warns(FutureWarning):
-        from torch_ampn.nn import hierarchical_features
-    assert hierarchical_features is torch_ampn.forming.hierarchical_features
-    with pytest.raises(AttributeError, match="no attribute 'NoSuchThing'"):
-        torch_ampn.nn.NoSuchThing  # noqa: B018
+    code = (
+        "import sys, torch_ampn.nn, torch_ampn.hierarchy, torch_ampn.transforms; "
+        "print(' '.join(sorted(sys.modules)))"
+    )
+    loaded = set(
+        subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True
+        ).stdout.split()
+    )
+    assert {"torch_ampn.nn.ampn", "torch_ampn.hierarchy.amg", "torch_ampn.transforms.contact"} <= loaded
+    application = ("data", "forming", "sim", "rollout", "training", "baselines", "design", "cli", "viz")
+    assert not {m for m in loaded if m.split(".")[:2] in [["torch_ampn", a] for a in application]}
+    assert not {"meshio", "lightning"} & loaded
+    with pytest.raises(AttributeError, match="no attribute 'AMPNSurrogate'"):
+        torch_ampn.nn.AMPNSurrogate  # noqa: B018 - the forming names live in torch_ampn.forming

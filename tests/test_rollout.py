@@ -7,8 +7,8 @@ import torch
 
 from torch_ampn.baselines import RigidWithPunch, static_plies
 from torch_ampn.data import HierarchyCache, NodeType, step_sample
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming import AMPNSurrogate
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.sim import process_trajectories, process_trajectory
 

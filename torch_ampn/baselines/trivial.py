@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.node_type import NodeType
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.transforms.radius import component_radius_table
 
 

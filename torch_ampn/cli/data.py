@@ -87,7 +87,7 @@ def _spread(root: Path, split: str, chaos: int, perturbation: float, out: Path |
     else:
         print("two-run reliability of the part-quality measures: needs --chaos 3 or more")
     if out is not None:
-        from torch_ampn.data.io import atomic_write_text
+        from torch_ampn.utils.io import atomic_write_text
 
         atomic_write_text(out, json.dumps(report, indent=1))
         print(f"wrote {out}")
@@ -137,7 +137,7 @@ def _energy(path: Path, split: str, plot: Path | None, out: Path | None, curves:
         shown = records[:curves]
         print(f"wrote {plot_energy([(n, r) for n, r, _ in shown], plot, times=shown[0][2])}")
     if out is not None:
-        from torch_ampn.data.io import atomic_write_text
+        from torch_ampn.utils.io import atomic_write_text
 
         atomic_write_text(out, json.dumps({name: r for name, r in rows}, indent=1))
         print(f"wrote {out}")

@@ -79,7 +79,6 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
 
 def run(args: argparse.Namespace) -> dict:
     """The design study the arguments describe; returns what ``design.json`` holds."""
-    from torch_ampn.data.io import atomic_write_text
     from torch_ampn.data.meshio_io import export_xdmf
     from torch_ampn.design import (
         MEASURES,
@@ -97,6 +96,7 @@ def run(args: argparse.Namespace) -> dict:
         verify_choice,
     )
     from torch_ampn.training import AMPNDataModule
+    from torch_ampn.utils.io import atomic_write_text
 
     if args.runs < 1:
         raise ValueError(f"--runs must be >= 1, got {args.runs}")

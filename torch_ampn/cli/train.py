@@ -63,7 +63,7 @@ def _same(a: Any, b: Any) -> bool:
 
 def _check_checkpoint(subcommand: str, path: str) -> None:
     """Exit with a one-line message unless ``path`` is a readable torch-ampn checkpoint."""
-    from torch_ampn.data.io import load_torch_file
+    from torch_ampn.utils.io import load_torch_file
 
     if not Path(path).is_file():
         sys.exit(f"torch-ampn {subcommand}: {path}: no such checkpoint file")

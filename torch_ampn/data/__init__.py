@@ -1,4 +1,8 @@
-"""Graph data: the AMG hierarchy, ``HierarchicalData`` and mesh builders."""
+"""Forming data: trajectories, datasets, meshes of laminates and tools, and their readers and writers.
+
+``HierarchicalData``, ``build_hierarchy`` and ``mesh_operator`` are the generic core's
+(:mod:`torch_ampn.hierarchy`), named here too for the forming code.
+"""
 
 from torch_ampn.data.dataset import (
     HierarchyCache,
@@ -8,8 +12,6 @@ from torch_ampn.data.dataset import (
     set_window,
     step_sample,
 )
-from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
-from torch_ampn.data.hierarchy import build_hierarchy, mesh_operator
 from torch_ampn.data.mesh import (
     MultiComponentMesh,
     cells_to_edge_index,
@@ -20,6 +22,7 @@ from torch_ampn.data.mesh import (
 from torch_ampn.data.meshio_io import export_vtu_series, export_xdmf, read_time_series
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError, gripper_forces, gripper_points
+from torch_ampn.hierarchy import HierarchicalData, build_hierarchy, level_name, mesh_operator
 
 __all__ = [
     "HierarchicalData",

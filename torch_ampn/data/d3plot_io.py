@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torch_ampn.data.io import atomic_folder
 from torch_ampn.data.part_map import _TYPES, assemble_parts, check_part_map, load_part_map
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
+from torch_ampn.utils.io import atomic_folder
 
 PART_MAP_NAME = "parts.yaml"
 

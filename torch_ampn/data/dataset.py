@@ -12,10 +12,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData, level_name
-from torch_ampn.data.hierarchy import build_hierarchy
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.hierarchy.amg import build_hierarchy
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData, level_name
 
 SPLITS = ("train", "val", "test")
 

@@ -37,8 +37,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torch_ampn.data.io import atomic_folder
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
+from torch_ampn.utils.io import atomic_folder
 
 _CELL_TYPES = {3: "triangle", 4: "quad"}
 

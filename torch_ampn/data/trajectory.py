@@ -37,8 +37,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torch_ampn.data.io import atomic_torch_save, load_torch_file
 from torch_ampn.data.node_type import NodeType
+from torch_ampn.utils.io import atomic_torch_save, load_torch_file
 
 FORMAT_NAME = "torch-ampn-trajectory"
 FORMAT_VERSION = 1

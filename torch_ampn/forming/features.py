@@ -33,7 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import (
+from torch_ampn.data.node_type import NodeType
+from torch_ampn.hierarchy.hierarchical_data import (
     CONTACT,
     DOWN,
     MESH,
@@ -44,7 +45,6 @@ from torch_ampn.data.hierarchical_data import (
     edge_type,
     level_name,
 )
-from torch_ampn.data.node_type import NodeType
 
 #: Gripper features per node and gripper: d_ij (3), |d_ij| (1), d_ij / (|d_ij| + eps) (3).
 GRIPPER_FEATURES_PER_GRIPPER = 7

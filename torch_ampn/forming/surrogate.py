@@ -8,7 +8,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torch_ampn.data.hierarchical_data import RELATIONS, HierarchicalData, level_name
 from torch_ampn.forming.features import (
     ampn_channels,
     hierarchical_features,
@@ -16,6 +15,7 @@ from torch_ampn.forming.features import (
     num_edge_features,
 )
 from torch_ampn.forming.normalizer import Normalizer
+from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, level_name
 from torch_ampn.nn.ampn import AMPN, EdgeType
 from torch_ampn.nn.diffusion import DiffusionAMPN
 from torch_ampn.nn.multilevel_loss import multilevel_mse

@@ -4,8 +4,6 @@ Nothing here knows about stamp forming: the forming surrogate (its features, nor
 the next-step predictor) is :mod:`torch_ampn.forming`.
 """
 
-import warnings
-
 from torch_ampn.nn.ampn import AMPN
 from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule, pointwise_loss
 from torch_ampn.nn.encoding import FourierLevelEncoding
@@ -29,13 +27,3 @@ __all__ = [
     "pointwise_loss",
     "restrict_mean",
 ]
-
-
-def __getattr__(name: str):
-    """The forming names that used to live here (:mod:`torch_ampn.forming`'s), with a FutureWarning."""
-    import torch_ampn.forming
-
-    if name in torch_ampn.forming.__all__:
-        warnings.warn(f"torch_ampn.nn.{name} moved to torch_ampn.forming.{name}", FutureWarning, stacklevel=2)
-        return getattr(torch_ampn.forming, name)
-    raise AttributeError(f"module 'torch_ampn.nn' has no attribute {name!r}")

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn.aggr import Aggregation
 
-from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
+from torch_ampn.hierarchy.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
 from torch_ampn.nn._conv import check_aggr
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.inter_level_conv import InterLevelConv

@@ -35,11 +35,11 @@ from contextlib import nullcontext
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory, gripper_forces, gripper_points
 from torch_ampn.forming.features import prior_features, step_features
 from torch_ampn.forming.surrogate import AMPNSurrogate
+from torch_ampn.hierarchy.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type
 from torch_ampn.nn.slots import SlottedEdgeIndex
 from torch_ampn.rollout.plain import next_positions
 from torch_ampn.transforms.candidates import (

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from torch_ampn.data.dataset import step_sample
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.utils.threads import follow_free_cpu
 
 Predictor = Callable[[HierarchicalData], Tensor]

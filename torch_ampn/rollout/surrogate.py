@@ -15,9 +15,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.forming.surrogate import AMPNSurrogate
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
 from torch_ampn.rollout.plain import rollout
 

@@ -18,12 +18,12 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torch_ampn.data.io import atomic_write_text
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.family import PartFamily, part_config, sample_part
 from torch_ampn.sim.simulate import simulate_batch
 from torch_ampn.sim.spread import blow_up
+from torch_ampn.utils.io import atomic_write_text
 
 if TYPE_CHECKING:
     from tqdm import tqdm

@@ -112,7 +112,7 @@ def plot_energy(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torch_ampn.data.io import atomic_savefig
+    from torch_ampn.utils.io import atomic_savefig
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     styles = ["-", "--", ":", "-."]

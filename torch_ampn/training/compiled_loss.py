@@ -6,8 +6,8 @@ import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming.surrogate import AMPNSurrogate
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.utils.threads import GOVERNOR
 
 

@@ -23,8 +23,8 @@ from torch_ampn.data.dataset import (
     split_files,
     topology_key,
 )
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.sim.config import StampFormingConfig
 from torch_ampn.sim.family import PartFamily
 from torch_ampn.training.items import (

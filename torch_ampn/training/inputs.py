@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from torch_ampn.data.dataset import set_window
-from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 
 
 def add_training_noise(

@@ -11,8 +11,8 @@ import torch.distributed as dist
 from torch.utils.data import DistributedSampler
 from torch_geometric.loader import DataLoader
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 
 
 @dataclass

@@ -11,8 +11,8 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
 from torch_ampn.forming.surrogate import AMPNSurrogate
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.rollout import rollout_rmse, rollout_surrogate
 from torch_ampn.training.baseline_rollouts import BaselineRollouts
 from torch_ampn.training.compiled_loss import CompiledLoss

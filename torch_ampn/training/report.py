@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 
 from torch_ampn.baselines.settings import SETTING_BASELINE_NAMES
-from torch_ampn.data.io import atomic_savefig, atomic_write_text
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.training.items import RolloutItem
+from torch_ampn.utils.io import atomic_savefig, atomic_write_text
 
 
 def _figure():

@@ -15,7 +15,7 @@ from torch import Tensor
 from torch_geometric.data.datapipes import functional_transform
 from torch_geometric.transforms import BaseTransform
 
-from torch_ampn.data.hierarchical_data import HierarchicalData
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.transforms._checks import check_backend, check_count, check_radius
 from torch_ampn.transforms.radius import component_radius_table, plain_radius_graph, table_to_edge_index
 

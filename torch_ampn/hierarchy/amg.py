@@ -15,8 +15,16 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
-from torch_ampn.data.hierarchical_data import CONTACT, DOWN, MESH, UP, HierarchicalData, edge_type, level_name
-from torch_ampn.data.io import atomic_torch_save
+from torch_ampn.hierarchy.hierarchical_data import (
+    CONTACT,
+    DOWN,
+    MESH,
+    UP,
+    HierarchicalData,
+    edge_type,
+    level_name,
+)
+from torch_ampn.utils.io import atomic_torch_save
 
 #: Bump when the construction changes, so that cached hierarchies are rebuilt.
 HIERARCHY_ALGORITHM_VERSION = 1

@@ -11,7 +11,7 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 from torch_geometric.data.storage import EdgeStorage, NodeStorage
 
-from torch_ampn.data.io import atomic_torch_save
+from torch_ampn.utils.io import atomic_torch_save
 
 _LEVEL_RE = re.compile(r"^l(\d+)$")
 
