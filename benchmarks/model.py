@@ -25,7 +25,7 @@ import torch
 
 from torch_ampn.data import NodeType, build_hierarchy, laminate_mesh, level_name
 from torch_ampn.forming import Normalizer, ampn_channels, hierarchical_features
-from torch_ampn.nn import AMPN
+from torch_ampn.nn import RobinAMPN
 
 from device_info import device_name  # benchmarks/device_info.py, beside this script
 
@@ -121,7 +121,7 @@ def run_variant(args, data, device, num_levels: int, dtype: str, compiled: bool)
     h, x_dict, e_dict, ei_dict, sizes = data
     torch.manual_seed(0)
     width = dict(hidden_channels=args.hidden, mlp_channels=args.hidden)
-    model = AMPN(**sizes, **width, num_levels=num_levels, noise_channels=3).to(device)
+    model = RobinAMPN(**sizes, **width, num_levels=num_levels, noise_channels=3).to(device)
     fn = torch.compile(model) if compiled else model
     noise = torch.randn(x_dict["l0"].size(0), 3, device=device)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=dtype == "bf16")

@@ -419,7 +419,8 @@ def test_transform_static_tables_and_repr():
         assert torch.equal(table_to_edge_index(nbr, mask), out.contact(level).edge_index)
     assert repr(ComponentRadiusGraph()) == (
         "ComponentRadiusGraph(r=3.0, k=3, level_radius_scale=None, num_components=None, "
-        "static=False, backend='auto', merge_levels=False, mode='component_knn', positions='current')"
+        "static=False, backend='auto', merge_levels=False, mode='component_knn', positions='current', "
+        "edge_features=False)"
     )
 
 

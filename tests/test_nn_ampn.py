@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch
 
 from torch_ampn.forming import ampn_channels, hierarchical_features
-from torch_ampn.nn import AMPN
+from torch_ampn.nn import RobinAMPN as AMPN
 from torch_ampn.testing import count_parameters, toy_hierarchy
 
 C, G = 3, 2  # components and grippers of the toy hierarchy
@@ -118,7 +118,7 @@ def test_flat_baseline_runs_pre_solve_post_on_l0_only(toy):
 def test_too_few_levels_in_the_input_raises(toy):
     h, x_dict, e_dict = toy
     with pytest.raises(KeyError, match="l4"):
-        make(num_levels=5)(x_dict, h.edge_index_dict, e_dict)
+        make(num_levels=5)(x_dict, h.edge_index_dict, e_dict, noise=noise_for(h))
 
 
 @pytest.mark.parametrize("num_levels", [1, 3])

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from torch_ampn.forming import ampn_channels, hierarchical_features
-from torch_ampn.nn import AMPN, InterLevelConv, IntraLevelConv
+from torch_ampn.nn import InterLevelConv, IntraLevelConv
+from torch_ampn.nn import RobinAMPN as AMPN
 from torch_ampn.testing import random_inter_level_inputs, random_intra_level_inputs, toy_hierarchy
 
 

@@ -8,7 +8,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from torch_ampn.forming import ampn_channels, hierarchical_features
-from torch_ampn.nn import AMPN, DiffusionAMPN, geometric_beta_schedule, pointwise_loss
+from torch_ampn.nn import DiffusionAMPN, geometric_beta_schedule, pointwise_loss
+from torch_ampn.nn import RobinAMPN as AMPN
 from torch_ampn.testing import toy_hierarchy
 
 C, G = 3, 2

@@ -16,8 +16,8 @@ from torch_ampn.forming.features import (
 )
 from torch_ampn.forming.normalizer import Normalizer
 from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, level_name
-from torch_ampn.nn.ampn import AMPN, EdgeType
-from torch_ampn.nn.diffusion import DiffusionAMPN
+from torch_ampn.nn.ampn import EdgeType
+from torch_ampn.nn.diffusion import DiffusionAMPN, RobinAMPN
 from torch_ampn.nn.multilevel_loss import multilevel_mse
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 from torch_ampn.utils.imports import import_object
@@ -73,8 +73,8 @@ class AMPNSurrogate(nn.Module):
         network_class: Another network in place of the AMPN, as ``"package.module:Class"`` (e.g.
             a peer's model behind an adapter, ``benchmarks/peers.py``). It is built as
             ``Class(fine_in_channels, num_levels=..., noise_channels=3, num_step_frequencies=...,
-            max_step=..., **network_options)`` and called like :meth:`AMPN.forward
-            <torch_ampn.nn.AMPN.forward>`; it must have the attributes ``noise_channels``,
+            max_step=..., **network_options)`` and called like :meth:`RobinAMPN.forward
+            <torch_ampn.nn.RobinAMPN.forward>`; it must have the attributes ``noise_channels``,
             ``out_channels``, ``step_encoding`` (``None`` without step conditioning) and
             ``num_layers``. With ``needs_positions = True`` on the class, ``x_dict`` also
             carries the normalised current and initial ``l0`` positions (``"pos"``, ``"pos0"``,
@@ -148,7 +148,7 @@ class AMPNSurrogate(nn.Module):
             "max_step": max(diffusion_steps - 1, 1),
         }
         if network_class is None:
-            model = AMPN(**sizes, **common, **network)
+            model = RobinAMPN(**sizes, **common, **network)
         else:
             model = import_network_class(network_class)(fine_in, **common, **(network_options or {}))
         self.diffusion = DiffusionAMPN(model, diffusion_steps)
@@ -160,8 +160,8 @@ class AMPNSurrogate(nn.Module):
         self.position_norm = Normalizer(3)
 
     @property
-    def model(self) -> AMPN:
-        """The network (an :class:`~torch_ampn.nn.AMPN` unless ``network_class`` is set)."""
+    def model(self) -> RobinAMPN:
+        """The network (a :class:`~torch_ampn.nn.RobinAMPN` unless ``network_class`` is set)."""
         return self.diffusion.model
 
     @property

@@ -159,6 +159,13 @@ class HierarchicalData(HeteroData):
         return cls.from_dict(torch.load(path, map_location=map_location, weights_only=True))
 
     # ---- display ---------------------------------------------------------------------
+    def _num_edges(self, relation: str, level: int) -> int:
+        """Edges of ``relation`` at ``level``; 0 where there is none (without creating the store)."""
+        key = edge_type(relation, level)
+        if key not in self.edge_types or "edge_index" not in self[key]:
+            return 0
+        return int(self[key].edge_index.size(1))
+
     def summary(self) -> str:
         """A table of nodes and edges per level."""
         rows = [("level", "nodes", *RELATIONS)]
@@ -168,16 +175,12 @@ class HierarchicalData(HeteroData):
                 (
                     level_name(k),
                     str(self.level(k).num_nodes),
-                    str(_num_edges(self.mesh(k))),
-                    str(_num_edges(self.contact(k))),
-                    "-" if last else str(_num_edges(self.down(k))),
-                    "-" if last else str(_num_edges(self.up(k))),
+                    str(self._num_edges(MESH, k)),
+                    str(self._num_edges(CONTACT, k)),
+                    "-" if last else str(self._num_edges(DOWN, k)),
+                    "-" if last else str(self._num_edges(UP, k)),
                 )
             )
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
         lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         return f"{type(self).__name__} with {self.num_levels} levels\n" + "\n".join(lines)
-
-
-def _num_edges(store: EdgeStorage) -> int:
-    return int(store.edge_index.size(1)) if "edge_index" in store else 0

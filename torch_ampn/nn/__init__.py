@@ -5,7 +5,7 @@ the next-step predictor) is :mod:`torch_ampn.forming`.
 """
 
 from torch_ampn.nn.ampn import AMPN
-from torch_ampn.nn.diffusion import DiffusionAMPN, geometric_beta_schedule, pointwise_loss
+from torch_ampn.nn.diffusion import DiffusionAMPN, RobinAMPN, geometric_beta_schedule, pointwise_loss
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
@@ -20,6 +20,7 @@ __all__ = [
     "InterLevelConv",
     "IntraLevelConv",
     "LayerNormMLP",
+    "RobinAMPN",
     "SlottedEdgeIndex",
     "geometric_beta_schedule",
     "incoming_slots",

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
+from torch_geometric.data import HeteroData
 from torch_geometric.nn.aggr import Aggregation
 
 from torch_ampn.hierarchy.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
@@ -20,12 +21,15 @@ from torch_ampn.nn.slots import split_edges
 class AMPN(nn.Module):
     r"""Algebraic-hierarchical message passing network (seed paper, "Processor and decoder").
 
+    A V-cycle of message passing over a graph hierarchy (a :class:`~torch_ampn.hierarchy.HierarchicalData`,
+    e.g. from :class:`~torch_ampn.transforms.AMGHierarchy`), mapping ``l0`` node features to
+    ``out_channels`` per ``l0`` node.
+
     **Encoder.** One linear layer per node kind (fine ``l0`` nodes; coarse ``l1 .. lL``
-    nodes) and per edge kind (mesh, contact, down, up) maps the (normalised) input
-    features to :math:`d` = ``hidden_channels``. The input of a node is its features, for
-    ``l0`` nodes followed by the noise input (``noise_channels`` columns), followed by the
-    :class:`FourierLevelEncoding` of its level and, with ``num_step_frequencies > 0``, the
-    encoding of the diffusion step.
+    nodes) and per edge relation (mesh, contact if used, down, up) maps the input features to
+    :math:`d` = ``hidden_channels``. The input of a node is its features, followed by the
+    :class:`FourierLevelEncoding` of its level and, with ``cond_channels > 0``, a conditioning
+    vector (one per graph, or one for all).
 
     **Processor (V-cycle).** Five stacks whose weights are shared by all levels:
     Pre (``pre_layers`` :class:`IntraLevelConv`), Down (``down_layers``
@@ -38,26 +42,24 @@ class AMPN(nn.Module):
     level carry over from its Pre to its Post stack; down and up edges have their own.
     Changing ``num_levels`` (for ``num_levels >= 2``) changes no parameter count.
 
-    **Decoder.** A linear layer on the final ``l0`` embeddings gives the (normalised)
-    residual :math:`\Delta u^t`, ``[N_0, out_channels]``.
+    **Decoder.** A linear layer on the final ``l0`` embeddings, ``[N_0, out_channels]``.
 
     **Flat baseline** (``num_levels=1``): a MeshGraphNet-style processor on ``l0`` only:
-    Pre, Solve, Post (``3 + 5 + 3 = 11`` :class:`IntraLevelConv` layers with mesh and contact
-    edges); the Down/Up stacks and the coarse-node, down- and up-edge encoders are not
-    created (they would receive no gradient).
+    Pre, Solve, Post (``3 + 5 + 3 = 11`` :class:`IntraLevelConv` layers); the Down/Up stacks
+    and the coarse-node, down- and up-edge encoders are not created.
 
     The forward pass is compile-friendly: the level loop is static (``num_levels`` is fixed
     per model), there is no ``.item()`` and no boolean indexing; fixed-size contact tables
-    with a validity mask give static shapes.
+    with a validity mask give static shapes. The ROBIN (diffusion) mode is
+    :class:`~torch_ampn.nn.RobinAMPN` with :class:`~torch_ampn.nn.DiffusionAMPN`.
 
     Args:
-        fine_in_channels: Node features of ``l0``, without the noise input.
-        coarse_in_channels: Node features of coarse levels.
-        edge_channels: Input features of every edge relation: one number for all, or one
-            per relation ``{"mesh": ..., "contact": ..., "down": ..., "up": ...}`` (down and
-            up only with ``num_levels > 1``). The forming surrogate's sizes are
-            :func:`torch_ampn.forming.ampn_channels`.
-        out_channels: Size of the prediction per ``l0`` node (3: the residual).
+        in_channels: Node features of ``l0`` (``data["l0"].x``).
+        out_channels: Size of the prediction per ``l0`` node.
+        edge_channels: Input features of the edges (``edge_attr``): one number for every
+            relation, or one per relation ``{"mesh": ..., "contact": ..., "down": ..., "up": ...}``
+            (down and up only with ``num_levels > 1``); ``None`` or 0: the edges carry no
+            features (:meth:`inputs` gives them a constant 1, ``[E, 1]``: their embedding is learnt).
         hidden_channels: Latent size :math:`d` of node and edge embeddings.
         num_levels: Levels used, ``L + 1`` (paper: 4); ``1`` is the flat baseline. The
             input may hold more levels (the coarser ones are ignored), not fewer.
@@ -70,22 +72,27 @@ class AMPN(nn.Module):
             ``torch_geometric.nn.aggr.Aggregation`` (each layer gets its own copy, so a
             learnable aggregation is learnt per layer).
         mlp_channels: Hidden width of the layer MLPs (paper: 128, whatever :math:`d` is).
-        noise_channels: Columns of a noise input appended to the ``l0`` features; the caller
-            passes it to :meth:`forward` (ROBIN mode: the noisy target, see
-            :class:`~torch_ampn.nn.DiffusionAMPN`). ``0`` (default): no noise input, and the
-            output is a deterministic function of the input.
+        coarse_in_channels: Node features of coarse levels (``data["lk"].x``, ``k >= 1``);
+            0 (default): coarse nodes start from their level encoding only.
+        relations: The intra-level edge relations: ``("mesh",)`` or ``("mesh", "contact")``
+            (contact edges, e.g. from :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
+            Without ``"contact"`` the network has no contact parameters.
         num_level_frequencies: Frequencies of the level encoding (``2 F`` inputs).
-        num_step_frequencies: Frequencies of the diffusion-step encoding; ``0`` (default)
-            for a model without step conditioning (AMPN, ``K = 1``).
-        max_step: Largest diffusion-step index the step encoding separates.
+        cond_channels: Width of the conditioning vector appended to every node's input
+            (:meth:`forward`'s ``cond``); 0: none.
+
+    Example:
+        >>> from torch_ampn.transforms import AMGHierarchy
+        >>> h = AMGHierarchy(max_levels=3)(data)  # a Data with pos, edge_index and x [N, 5]
+        >>> model = AMPN(5, 1, edge_channels=4, hidden_channels=32, num_levels=3)
+        >>> model(h).shape  # [N, 1]
     """
 
     def __init__(
         self,
-        fine_in_channels: int,
-        coarse_in_channels: int,
-        edge_channels: int | Mapping[str, int],
-        out_channels: int = 3,
+        in_channels: int,
+        out_channels: int,
+        edge_channels: int | Mapping[str, int] | None = None,
         hidden_channels: int = 128,
         num_levels: int = 4,
         pre_layers: int = 3,
@@ -95,55 +102,57 @@ class AMPN(nn.Module):
         up_layers: int = 2,
         aggr: str | Aggregation = "max",
         mlp_channels: int = 128,
-        noise_channels: int = 0,
+        coarse_in_channels: int = 0,
+        relations: Sequence[str] = (MESH,),
         num_level_frequencies: int = 4,
-        num_step_frequencies: int = 0,
-        max_step: int = 20,
+        cond_channels: int = 0,
     ) -> None:
         super().__init__()
         if num_levels < 1:
             raise ValueError(f"num_levels must be >= 1, got {num_levels}")
         if num_levels > 1 and (down_layers < 1 or up_layers < 1):
             raise ValueError("a hierarchy (num_levels > 1) needs down_layers >= 1 and up_layers >= 1")
-        self.fine_in_channels = fine_in_channels
+        relations = tuple(relations)
+        if relations not in ((MESH,), (MESH, CONTACT)):
+            raise ValueError(f"relations must be ('mesh',) or ('mesh', 'contact'), got {relations}")
+        self.in_channels = in_channels
         self.coarse_in_channels = coarse_in_channels
         self.out_channels = out_channels
         self.hidden_channels = hidden_channels
         self.num_levels = num_levels
+        self.relations = relations
+        self.cond_channels = cond_channels
         aggr = check_aggr(aggr)
         self.aggr = aggr if isinstance(aggr, str) else repr(aggr)  # a template module is not registered
         self.mlp_channels = mlp_channels
-        self.noise_channels = noise_channels
+        contact = CONTACT in relations
 
         self.level_encoding = FourierLevelEncoding(num_level_frequencies, max_index=8.0)
-        self.step_encoding = (
-            FourierLevelEncoding(num_step_frequencies, max_index=float(max_step))
-            if num_step_frequencies > 0
-            else None
-        )
-        cond = self.level_encoding.out_channels + (
-            self.step_encoding.out_channels if self.step_encoding is not None else 0
-        )
+        cond = self.level_encoding.out_channels + cond_channels
         d, h = hidden_channels, self.mlp_channels
         hierarchical = num_levels > 1
 
-        fine_in = fine_in_channels + self.noise_channels + cond
-        self.node_encoders = nn.ModuleDict({"fine": nn.Linear(fine_in, d)})
-        widths = _edge_channels(edge_channels, (MESH, CONTACT, DOWN, UP) if hierarchical else (MESH, CONTACT))
-        self.edge_encoders = nn.ModuleDict({rel: nn.Linear(widths[rel], d) for rel in (MESH, CONTACT)})
+        self.node_encoders = nn.ModuleDict({"fine": nn.Linear(in_channels + cond, d)})
+        self.edge_widths = _edge_channels(edge_channels, relations + ((DOWN, UP) if hierarchical else ()))
+        # an edge relation without features gets a constant 1 as its input (a learnt embedding)
+        width = {rel: max(w, 1) for rel, w in self.edge_widths.items()}
+        self.edge_encoders = nn.ModuleDict({rel: nn.Linear(width[rel], d) for rel in relations})
         if hierarchical:  # (created in this order, which the initialisation's random draws follow)
             self.node_encoders["coarse"] = nn.Linear(coarse_in_channels + cond, d)
-            self.edge_encoders[DOWN] = nn.Linear(widths[DOWN], d)
-            self.edge_encoders[UP] = nn.Linear(widths[UP], d)
+            self.edge_encoders[DOWN] = nn.Linear(width[DOWN], d)
+            self.edge_encoders[UP] = nn.Linear(width[UP], d)
 
-        def stack(conv: type[IntraLevelConv | InterLevelConv], n: int) -> nn.ModuleList:
-            return nn.ModuleList(conv(d, h, copy.deepcopy(aggr)) for _ in range(n))
+        def intra(n: int) -> nn.ModuleList:
+            return nn.ModuleList(IntraLevelConv(d, h, copy.deepcopy(aggr), contact=contact) for _ in range(n))
 
-        self.pre = stack(IntraLevelConv, pre_layers)
-        self.solve = stack(IntraLevelConv, solve_layers)
-        self.post = stack(IntraLevelConv, post_layers)
-        self.down = stack(InterLevelConv, down_layers) if hierarchical else nn.ModuleList()
-        self.up = stack(InterLevelConv, up_layers) if hierarchical else nn.ModuleList()
+        def inter(n: int) -> nn.ModuleList:
+            return nn.ModuleList(InterLevelConv(d, h, copy.deepcopy(aggr)) for _ in range(n))
+
+        self.pre = intra(pre_layers)
+        self.solve = intra(solve_layers)
+        self.post = intra(post_layers)
+        self.down = inter(down_layers) if hierarchical else nn.ModuleList()
+        self.up = inter(up_layers) if hierarchical else nn.ModuleList()
         self.decoder = nn.Linear(d, out_channels)
         self.reset_parameters()
 
@@ -162,92 +171,142 @@ class AMPN(nn.Module):
 
     # ---- forward -----------------------------------------------------------------------
     def _conditioning(
-        self, level: int, num_nodes: int, step_code: Tensor | None, batch: Tensor | None, like: Tensor
+        self, level: int, num_nodes: int, cond: Tensor | None, batch: Tensor | None, like: Tensor
     ) -> list[Tensor]:
-        """Level (and step) encodings of ``num_nodes`` nodes of ``level``: list of ``[N, *]``."""
+        """Level encoding (and conditioning) of ``num_nodes`` nodes of ``level``: list of ``[N, *]``."""
         out = [self.level_encoding(level).to(like.dtype).expand(num_nodes, -1)]  # [N, 2F]
-        if step_code is not None:
-            if step_code.dim() == 2 and batch is not None:  # [B, 2F']: a step per graph
-                code = step_code[batch]
-            else:  # [2F'] or [1, 2F']: the same step everywhere
-                code = step_code.expand(num_nodes, -1)
+        if cond is not None:
+            if cond.dim() == 2 and cond.size(0) > 1:  # [B, C]: one per graph
+                if batch is None:
+                    raise ValueError("a conditioning vector per graph ([B, C]) needs batch_dict")
+                code = cond[batch]
+            else:  # [C] or [1, C]: the same everywhere
+                code = cond.reshape(1, -1).expand(num_nodes, -1)
             out.append(code.to(like.dtype))
         return out
 
+    def inputs(
+        self, data: HeteroData
+    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor], dict[str, Tensor] | None]:
+        """``(x_dict, edge_index_dict, edge_attr_dict, batch_dict)`` of a (batched) hierarchy.
+
+        Reads ``data["l0"].x``, ``data["lk"].x`` (with ``coarse_in_channels > 0``) and every
+        used relation's ``edge_index`` and ``edge_attr`` (a relation of width 0 needs no
+        ``edge_attr`` and gets ones ``[E, 1]``; a missing contact relation counts as empty).
+        """
+        num_levels = self.num_levels
+        if len(data.node_types) < num_levels:
+            levels = len(data.node_types)
+            raise ValueError(f"AMPN with num_levels={num_levels}: the data has {levels} level(s)")
+        fine = data[level_name(0)]
+        if "x" not in fine:
+            raise ValueError("AMPN: the data has no node features data['l0'].x")
+        x = fine.x
+        if x.dim() != 2 or x.size(1) != self.in_channels:
+            raise ValueError(f"AMPN: data['l0'].x must be [N, {self.in_channels}], got {list(x.shape)}")
+        x_dict = {level_name(0): x}
+        for k in range(1, num_levels):
+            store = data[level_name(k)]
+            if self.coarse_in_channels > 0:
+                if "x" not in store:
+                    raise ValueError(f"AMPN(coarse_in_channels={self.coarse_in_channels}): no data['l{k}'].x")
+                x_dict[level_name(k)] = store.x
+            else:
+                x_dict[level_name(k)] = x.new_empty(store.num_nodes, 0)
+        edge_index_dict, edge_attr_dict = {}, {}
+        keys = [(rel, k) for k in range(num_levels) for rel in self.relations]
+        keys += [(rel, k) for k in range(num_levels - 1) for rel in (DOWN, UP)]
+        for rel, k in keys:
+            key = edge_type(rel, k)
+            if key not in data.edge_types:
+                if rel == CONTACT:
+                    continue
+                raise ValueError(f"AMPN: the data has no {key} edges")
+            store = data[key]
+            edge_index_dict[key] = store.edge_index
+            width = self.edge_widths[rel]
+            if width == 0:
+                edge_attr_dict[key] = x.new_ones(store.edge_index.size(1), 1)
+            elif "edge_attr" not in store or store.edge_attr.size(-1) != width:
+                got = list(store.edge_attr.shape) if "edge_attr" in store else None
+                raise ValueError(f"AMPN: data[{key}].edge_attr must be [E, {width}], got {got}")
+            else:
+                edge_attr_dict[key] = store.edge_attr
+        batched = "batch" in fine
+        batch_dict = None
+        if batched:
+            batch_dict = {level_name(k): data[level_name(k)].batch for k in range(num_levels)}
+        return x_dict, edge_index_dict, edge_attr_dict, batch_dict
+
     def forward(
         self,
-        x_dict: dict[str, Tensor],
-        edge_index_dict: dict[EdgeType, Tensor],
-        edge_attr_dict: dict[EdgeType, Tensor],
-        noise: Tensor | None = None,
-        step: Tensor | None = None,
+        x_dict: dict[str, Tensor] | HeteroData,
+        edge_index_dict: dict[EdgeType, Tensor] | None = None,
+        edge_attr_dict: dict[EdgeType, Tensor] | None = None,
         batch_dict: dict[str, Tensor] | None = None,
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+        cond: Tensor | None = None,
     ) -> Tensor:
-        """Predict the (normalised) residual of the ``l0`` nodes.
+        """The prediction of every ``l0`` node, ``[N_0, out_channels]``.
 
-        Inputs are keyed like a :class:`~torch_ampn.data.HierarchicalData`
-        (``data.edge_index_dict``, ``data.batch_dict``); build the features with
-        :func:`~torch_ampn.forming.hierarchical_features` and normalise them.
+        Either ``model(data)`` on a (batched) :class:`~torch_ampn.hierarchy.HierarchicalData`
+        (see :meth:`inputs`), or the dict form keyed like one, which the forming surrogate uses.
 
         Args:
-            x_dict: Node features ``{"lk": [N_k, F_k]}`` for ``k < num_levels``
-                (``fine_in_channels`` for ``l0``, ``coarse_in_channels`` otherwise).
+            x_dict: The hierarchy, or node features ``{"lk": [N_k, F_k]}`` for ``k < num_levels``
+                (``in_channels`` for ``l0``, ``coarse_in_channels`` otherwise).
             edge_index_dict: ``{(src, rel, dst): LongTensor[2, E]}`` rows ``(source, target)``:
-                ``("lk", "mesh", "lk")`` and ``("lk", "contact", "lk")`` for every used level
-                (a missing contact set counts as empty), ``("lk", "down", "lk+1")`` and
+                ``("lk", "mesh", "lk")`` (and ``("lk", "contact", "lk")``: a missing contact set
+                counts as empty) for every used level, ``("lk", "down", "lk+1")`` and
                 ``("lk+1", "up", "lk")`` between used levels. Other keys are ignored. Any
                 of them may be a :class:`~torch_ampn.nn.SlottedEdgeIndex` (the edges with
                 their aggregation table; what :class:`~torch_ampn.rollout.fast.FastRollout`
                 passes): those aggregate by a dense reduction (same result).
-            edge_attr_dict: Edge features with the same keys.
-            noise: Noise input of ``l0`` ``[N_0, noise_channels]`` (models with
-                ``noise_channels > 0`` only): the noisy target in ROBIN mode, N(0, 1) samples
-                in the paper's AMPN mode.
-            step: Diffusion-step index (models with step conditioning only): a number or
-                scalar tensor (every graph) or ``LongTensor[B]`` (one per graph, with ``batch_dict``).
+            edge_attr_dict: Edge features with the same keys, ``[E, edge width]``.
             batch_dict: ``{"lk": LongTensor[N_k]}`` graph of every node; needed only for a
-                per-graph ``step``.
+                per-graph ``cond``.
             contact_mask_dict: Optional ``{("lk", "contact", "lk"): BoolTensor[M_k]}``
                 validity masks of fixed-size contact tables (see :class:`IntraLevelConv`).
+            cond: Conditioning ``[cond_channels]`` (every node) or ``[B, cond_channels]`` (per graph).
 
         Returns:
             ``[N_0, out_channels]``.
         """
+        if isinstance(x_dict, HeteroData):
+            x_dict, edge_index_dict, edge_attr_dict, found = self.inputs(x_dict)
+            batch_dict = batch_dict if batch_dict is not None else found
+        if edge_index_dict is None or edge_attr_dict is None:
+            raise ValueError("AMPN: pass a HierarchicalData, or x_dict, edge_index_dict and edge_attr_dict")
         num_levels = self.num_levels
         names = [level_name(k) for k in range(num_levels)]
         for lk in names:
             if lk not in x_dict:
                 raise KeyError(f"AMPN with num_levels={num_levels} needs node features for {lk!r}")
-        if self.noise_channels > 0 and noise is None:
-            raise ValueError(
-                f"this AMPN has a noise input ({self.noise_channels} channels): pass `noise` "
-                "(or build it with noise_channels=0)"
-            )
-        step_code = None
-        if self.step_encoding is not None:
-            if step is None:
-                raise ValueError("this AMPN is conditioned on the diffusion step: pass `step`")
-            step_code = self.step_encoding(step)  # [2F'] or [B, 2F']
+        if (cond is None) != (self.cond_channels == 0):
+            raise ValueError(f"AMPN(cond_channels={self.cond_channels}): pass `cond` exactly when it is > 0")
         batch_dict = batch_dict or {}
+        contact = CONTACT in self.relations
 
         # ---- encode ------------------------------------------------------------------
         h: list[Tensor] = []  # node embeddings per level, [N_k, d]
         for k, lk in enumerate(names):
             x = x_dict[lk]
-            parts = [x]
-            if k == 0 and self.noise_channels > 0:
-                parts.append(noise.to(x.dtype))
-            parts += self._conditioning(k, x.size(0), step_code, batch_dict.get(lk), x)
+            parts = [x, *self._conditioning(k, x.size(0), cond, batch_dict.get(lk), x)]
             h.append(self.node_encoders["fine" if k == 0 else "coarse"](torch.cat(parts, dim=-1)))
 
-        mesh_index, mesh_e, contact_index, contact_e, contact_mask = [], [], [], [], []
+        mesh_index, mesh_e = [], []
+        contact_index: list[Tensor | None] = []
+        contact_e: list[Tensor | None] = []
+        contact_mask: list[Tensor | None] = []
         for k in range(num_levels):
             key = edge_type(MESH, k)
             mesh_index.append(edge_index_dict[key])
             mesh_e.append(self.edge_encoders[MESH](edge_attr_dict[key]))
             key = edge_type(CONTACT, k)
-            if key in edge_index_dict:
+            if not contact:
+                contact_index.append(None)
+                contact_e.append(None)
+            elif key in edge_index_dict:
                 contact_index.append(edge_index_dict[key])
                 contact_e.append(self.edge_encoders[CONTACT](edge_attr_dict[key]))
             else:
@@ -287,15 +346,19 @@ class AMPN(nn.Module):
     def extra_repr(self) -> str:
         """Constructor arguments shown by ``repr``."""
         return (
-            f"fine_in_channels={self.fine_in_channels}, coarse_in_channels={self.coarse_in_channels}, "
+            f"in_channels={self.in_channels}, coarse_in_channels={self.coarse_in_channels}, "
             f"out_channels={self.out_channels}, hidden_channels={self.hidden_channels}, "
-            f"mlp_channels={self.mlp_channels}, noise_channels={self.noise_channels}, "
-            f"num_levels={self.num_levels}, aggr={self.aggr!r}"
+            f"mlp_channels={self.mlp_channels}, num_levels={self.num_levels}, "
+            f"relations={self.relations}, aggr={self.aggr!r}"
         )
 
 
-def _edge_channels(edge_channels: int | Mapping[str, int], relations: tuple[str, ...]) -> dict[str, int]:
+def _edge_channels(
+    edge_channels: int | Mapping[str, int] | None, relations: tuple[str, ...]
+) -> dict[str, int]:
     """``{relation: input width}`` from one width for all or a mapping; one-line error for a missing one."""
+    if edge_channels is None:
+        return dict.fromkeys(relations, 0)
     if isinstance(edge_channels, int):
         return dict.fromkeys(relations, edge_channels)
     missing = [rel for rel in relations if rel not in edge_channels]

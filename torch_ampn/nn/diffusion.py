@@ -31,14 +31,17 @@ sampling is one forward pass. The step index the network sees is 0-based (``k - 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch_geometric.nn.aggr import Aggregation
 
+from torch_ampn.hierarchy.hierarchical_data import CONTACT, MESH
 from torch_ampn.nn.ampn import AMPN, EdgeType
+from torch_ampn.nn.encoding import FourierLevelEncoding
 
 #: Numbers of diffusion steps compared in the seed paper's Table 1.
 PAPER_NUM_STEPS = (1, 5, 10, 20)
@@ -91,6 +94,133 @@ def geometric_beta_schedule(
     return (beta_min * (beta_max / beta_min) ** t).to(dtype)
 
 
+class RobinAMPN(AMPN):
+    r"""The :class:`AMPN` of ROBIN and the forming surrogate: contact, a noise input, step conditioning.
+
+    An :class:`AMPN` with ``relations=("mesh", "contact")`` whose ``l0`` input is followed by a
+    noise input (``noise_channels`` columns: the noisy target in ROBIN mode, N(0, 1) samples in
+    the paper's AMPN mode) and, with ``num_step_frequencies > 0``, conditioned on the diffusion
+    step (its :class:`FourierLevelEncoding` is the :class:`AMPN`'s ``cond``). The denoiser of
+    :class:`DiffusionAMPN`.
+
+    Args:
+        fine_in_channels: Node features of ``l0``, without the noise input.
+        coarse_in_channels: Node features of coarse levels.
+        edge_channels: See :class:`AMPN` (the forming sizes: :func:`torch_ampn.forming.ampn_channels`).
+        out_channels: Size of the prediction per ``l0`` node (3: the residual).
+        hidden_channels: See :class:`AMPN`.
+        num_levels: See :class:`AMPN`.
+        pre_layers: See :class:`AMPN`.
+        down_layers: See :class:`AMPN`.
+        solve_layers: See :class:`AMPN`.
+        post_layers: See :class:`AMPN`.
+        up_layers: See :class:`AMPN`.
+        aggr: See :class:`AMPN`.
+        mlp_channels: See :class:`AMPN`.
+        noise_channels: Columns of the noise input; 0: none (a deterministic network).
+        num_level_frequencies: See :class:`AMPN`.
+        num_step_frequencies: Frequencies of the diffusion-step encoding; 0 (default): no step
+            conditioning (AMPN, ``K = 1``).
+        max_step: Largest diffusion-step index the step encoding separates.
+    """
+
+    def __init__(
+        self,
+        fine_in_channels: int,
+        coarse_in_channels: int,
+        edge_channels: int | Mapping[str, int],
+        out_channels: int = 3,
+        hidden_channels: int = 128,
+        num_levels: int = 4,
+        pre_layers: int = 3,
+        down_layers: int = 2,
+        solve_layers: int = 5,
+        post_layers: int = 3,
+        up_layers: int = 2,
+        aggr: str | Aggregation = "max",
+        mlp_channels: int = 128,
+        noise_channels: int = 0,
+        num_level_frequencies: int = 4,
+        num_step_frequencies: int = 0,
+        max_step: int = 20,
+    ) -> None:
+        step_encoding = (
+            FourierLevelEncoding(num_step_frequencies, max_index=float(max_step))
+            if num_step_frequencies > 0
+            else None
+        )
+        super().__init__(
+            fine_in_channels + noise_channels,
+            out_channels,
+            edge_channels,
+            hidden_channels=hidden_channels,
+            num_levels=num_levels,
+            pre_layers=pre_layers,
+            down_layers=down_layers,
+            solve_layers=solve_layers,
+            post_layers=post_layers,
+            up_layers=up_layers,
+            aggr=aggr,
+            mlp_channels=mlp_channels,
+            coarse_in_channels=coarse_in_channels,
+            relations=(MESH, CONTACT),
+            num_level_frequencies=num_level_frequencies,
+            cond_channels=0 if step_encoding is None else step_encoding.out_channels,
+        )
+        self.fine_in_channels = fine_in_channels
+        self.noise_channels = noise_channels
+        self.step_encoding = step_encoding
+
+    def forward(  # type: ignore[override]
+        self,
+        x_dict: dict[str, Tensor],
+        edge_index_dict: dict[EdgeType, Tensor],
+        edge_attr_dict: dict[EdgeType, Tensor],
+        noise: Tensor | None = None,
+        step: Tensor | None = None,
+        batch_dict: dict[str, Tensor] | None = None,
+        contact_mask_dict: dict[EdgeType, Tensor] | None = None,
+    ) -> Tensor:
+        """Predict the ``l0`` output, ``[N_0, out_channels]``.
+
+        Args:
+            x_dict: See :meth:`AMPN.forward` (``l0``: ``fine_in_channels`` columns).
+            edge_index_dict: See :meth:`AMPN.forward`.
+            edge_attr_dict: See :meth:`AMPN.forward`.
+            noise: Noise input of ``l0`` ``[N_0, noise_channels]`` (models with
+                ``noise_channels > 0`` only).
+            step: Diffusion-step index (models with step conditioning only): a number or
+                scalar tensor (every graph) or ``LongTensor[B]`` (one per graph, with ``batch_dict``).
+            batch_dict: See :meth:`AMPN.forward`.
+            contact_mask_dict: See :meth:`AMPN.forward`.
+        """
+        if self.noise_channels > 0:
+            if noise is None:
+                raise ValueError(
+                    f"this AMPN has a noise input ({self.noise_channels} channels): pass `noise` "
+                    "(or build it with noise_channels=0)"
+                )
+            x = x_dict["l0"]
+            x_dict = {**x_dict, "l0": torch.cat([x, noise.to(x.dtype)], dim=-1)}
+        step_code = None
+        if self.step_encoding is not None:
+            if step is None:
+                raise ValueError("this AMPN is conditioned on the diffusion step: pass `step`")
+            step_code = self.step_encoding(step)  # [2F'] or [B, 2F']
+        return super().forward(
+            x_dict, edge_index_dict, edge_attr_dict, batch_dict, contact_mask_dict, cond=step_code
+        )
+
+    def extra_repr(self) -> str:
+        """Constructor arguments shown by ``repr``."""
+        return (
+            f"fine_in_channels={self.fine_in_channels}, coarse_in_channels={self.coarse_in_channels}, "
+            f"out_channels={self.out_channels}, hidden_channels={self.hidden_channels}, "
+            f"mlp_channels={self.mlp_channels}, noise_channels={self.noise_channels}, "
+            f"num_levels={self.num_levels}, aggr={self.aggr!r}"
+        )
+
+
 class DiffusionAMPN(nn.Module):
     r"""An :class:`~torch_ampn.nn.AMPN` used as a v-predicting DDPM denoiser (ROBIN mode).
 
@@ -110,7 +240,7 @@ class DiffusionAMPN(nn.Module):
     alphas_bar: Tensor
 
     def __init__(
-        self, model: AMPN, num_steps: int = 1, beta_min: float = 1e-4, beta_max: float = 1.0
+        self, model: RobinAMPN, num_steps: int = 1, beta_min: float = 1e-4, beta_max: float = 1.0
     ) -> None:
         super().__init__()
         if model.noise_channels != model.out_channels:

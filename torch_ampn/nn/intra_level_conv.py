@@ -36,11 +36,15 @@ class IntraLevelConv(EmbeddingConv):
     is a max (default), sum or mean over the incoming edges; a node without incoming edges
     aggregates to zeros.
 
+    With ``contact=False`` the layer has mesh edges only (no :math:`\mathbf{W}_C`, :math:`f_C`,
+    and :math:`f_V` of :math:`\mathbf{k}_i` and the mesh aggregation): a MeshGraphNet layer.
+
     Args:
         channels: Size :math:`d` of node and edge embeddings.
         mlp_channels: Hidden width of the MLPs (paper: 128).
         aggr: The aggregation :math:`\bigoplus`: ``"max"``, ``"sum"``, ``"mean"`` or a
             ``torch_geometric.nn.aggr.Aggregation`` (e.g. ``SoftmaxAggregation(learn=True)``).
+        contact: Whether the layer has the contact edge relation.
         **kwargs: Further arguments of :class:`torch_geometric.nn.conv.MessagePassing`.
 
     Shapes:
@@ -49,18 +53,27 @@ class IntraLevelConv(EmbeddingConv):
           mesh edge indices :math:`(2, |\mathcal{E}^M|)`, mesh edge embeddings
           :math:`(|\mathcal{E}^M|, d)`,
           contact edge indices :math:`(2, |\mathcal{E}^C|)`, contact edge embeddings
-          :math:`(|\mathcal{E}^C|, d)`, contact mask :math:`(|\mathcal{E}^C|)` *(optional)*
+          :math:`(|\mathcal{E}^C|, d)`, contact mask :math:`(|\mathcal{E}^C|)` *(optional;
+          the three are* ``None`` *with* ``contact=False``*)*
         - **output:** node embeddings :math:`(|\mathcal{V}|, d)`, mesh edge embeddings
           :math:`(|\mathcal{E}^M|, d)`, contact edge embeddings :math:`(|\mathcal{E}^C|, d)`
+          (``None`` with ``contact=False``)
     """
 
     def __init__(
-        self, channels: int, mlp_channels: int = 128, aggr: str | Aggregation = "max", **kwargs
+        self,
+        channels: int,
+        mlp_channels: int = 128,
+        aggr: str | Aggregation = "max",
+        contact: bool = True,
+        **kwargs,
     ) -> None:
         super().__init__(channels, mlp_channels, aggr, **kwargs)
-        self.lin_contact, self.mlp_contact = self.residual(), self.mlp(3)
+        self.contact = contact
+        if contact:
+            self.lin_contact, self.mlp_contact = self.residual(), self.mlp(3)
         self.lin_mesh, self.mlp_mesh = self.residual(), self.mlp(3)
-        self.lin_node, self.mlp_node = self.residual(), self.mlp(3)
+        self.lin_node, self.mlp_node = self.residual(), self.mlp(3 if contact else 2)
         self.reset_parameters()
 
     def forward(
@@ -68,10 +81,10 @@ class IntraLevelConv(EmbeddingConv):
         x: Tensor,
         mesh_index: Edges,
         e_mesh: Tensor,
-        contact_index: Edges,
-        e_contact: Tensor,
+        contact_index: Edges | None = None,
+        e_contact: OptTensor = None,
         contact_mask: OptTensor = None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, OptTensor]:
         """Run one layer of eq. (1).
 
         Args:
@@ -90,16 +103,20 @@ class IntraLevelConv(EmbeddingConv):
                 their indices must still be valid node indices (e.g. the node itself).
 
         Returns:
-            ``(x, e_mesh, e_contact)`` with the shapes of the inputs.
+            ``(x, e_mesh, e_contact)`` with the shapes of the inputs (``e_contact`` ``None``
+            without contact).
         """
         num_nodes = x.size(0)
-        contact_edges, contact_slots = split_edges(contact_index)  # [2, M], [N, D] or None
-        # W e + f(k_i, k_j, e), the residual map sharing the MLP's product with e
-        e_contact = self.mlp_contact.forward_edges(x, x, e_contact, contact_edges, self.lin_contact.weight)
-        e_mesh = self.mlp_mesh.forward_edges(x, x, e_mesh, split_edges(mesh_index)[0], self.lin_mesh.weight)
-
         size = (num_nodes, num_nodes)
+        # W e + f(k_i, k_j, e), the residual map sharing the MLP's product with e
+        e_mesh = self.mlp_mesh.forward_edges(x, x, e_mesh, split_edges(mesh_index)[0], self.lin_mesh.weight)
         agg_mesh = self.aggregate_edges(mesh_index, e_mesh, size)  # [N, d]
+        if not self.contact:
+            return self.lin_node(x) + self.mlp_node(torch.cat([x, agg_mesh], dim=-1)), e_mesh, None
+        if contact_index is None or e_contact is None:
+            raise ValueError("IntraLevelConv(contact=True) needs contact_index and e_contact")
+        contact_edges, contact_slots = split_edges(contact_index)  # [2, M], [N, D] or None
+        e_contact = self.mlp_contact.forward_edges(x, x, e_contact, contact_edges, self.lin_contact.weight)
         if contact_slots is not None and isinstance(self.aggr, str):  # masked slots are left out
             agg_contact = self.aggregate_edges(contact_index, e_contact, size)
             if contact_mask is not None:

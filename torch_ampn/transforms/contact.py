@@ -12,9 +12,11 @@ from collections.abc import Sequence
 
 import torch
 from torch import Tensor
+from torch_geometric.data import Data
 from torch_geometric.data.datapipes import functional_transform
 from torch_geometric.transforms import BaseTransform
 
+from torch_ampn.hierarchy.features import edge_features
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.transforms._checks import check_backend, check_count, check_radius
 from torch_ampn.transforms.radius import component_radius_table, plain_radius_graph, table_to_edge_index
@@ -28,6 +30,12 @@ class ComponentRadiusGraph(BaseTransform):
     r"""Fills the contact edges ``("lk", "contact", "lk")`` on every level of a hierarchy.
 
     Functional name: :obj:`component_radius_graph`.
+
+    Positions may be 3-D or 2-D (``[N, 2]``: searched in the plane). On a plain ``Data`` (``pos``
+    and a ``component`` vector ``LongTensor[N]``; ``batch`` when batched) it stores the contact
+    edges as ``data.contact_edge_index`` ``[2, M]`` (and, with ``static``, ``contact_nbr`` and
+    ``contact_mask``), beside the mesh's ``edge_index``;
+    :class:`~torch_ampn.transforms.AMGHierarchy` takes them on as ``l0``'s contact relation.
 
     For every node and every *other* component it links the ``k`` nearest nodes of that
     component within the level's radius
@@ -67,6 +75,9 @@ class ComponentRadiusGraph(BaseTransform):
             ``"radius"`` (every node within ``r``, any component).
         positions: ``"current"`` (default: ``data["l0"].pos``, rebuilt every step) or
             ``"initial"`` (``data["l0"].pos0``: the same edges at every step).
+        edge_features: Also store the contact edges' relative-position features
+            (:func:`~torch_ampn.hierarchy.features.edge_features` of the current positions) as
+            their ``edge_attr`` (``contact_edge_attr`` on a plain ``Data``).
     """
 
     def __init__(
@@ -80,6 +91,7 @@ class ComponentRadiusGraph(BaseTransform):
         merge_levels: bool = False,
         mode: str = "component_knn",
         positions: str = "current",
+        edge_features: bool = False,
     ) -> None:
         self.r = check_radius(r)
         self.k = check_count(k, "k")
@@ -101,6 +113,7 @@ class ComponentRadiusGraph(BaseTransform):
             raise ValueError("mode='radius' has no fixed-size tables: use static=False, merge_levels=False")
         self.mode = mode
         self.positions = positions
+        self.edge_features = bool(edge_features)
 
     def level_radius(self, level: int) -> float:
         """Contact radius of ``level`` (``0`` is the finest)."""
@@ -113,13 +126,15 @@ class ComponentRadiusGraph(BaseTransform):
             raise ValueError(f"level_radius_scale has {len(scale)} entries, but level {level} needs one")
         return self.r * scale[level]
 
-    def forward(self, data: HierarchicalData) -> HierarchicalData:
+    def forward(self, data: HierarchicalData | Data) -> HierarchicalData | Data:
         """Fill ``data[lk, "contact", lk].edge_index`` on every level ``k`` (see the class docs).
 
         With ``merge_levels`` and the same radius on every level, all levels are searched in
         one call (levels kept apart like the graphs of a batch); the result is the same as
         level by level.
         """
+        if isinstance(data, Data):
+            return self._plain(data)
         pos, comp = _read_level0(data, "pos0" if self.positions == "initial" else "pos")
         levels = range(data.num_levels)
         inputs = []  # (pos_k, comp_k, batch_k) per level
@@ -135,7 +150,7 @@ class ComponentRadiusGraph(BaseTransform):
         if self.mode == "radius":
             for level, ((p, _, b), radius) in enumerate(zip(inputs, radii, strict=True)):
                 data.contact(level).edge_index = plain_radius_graph(p, radius, batch=b, backend=self.backend)
-            return data
+            return self._features(data)
         if self.merge_levels and len(set(radii)) == 1 and len(inputs) > 1:
             tables = self._merged_tables(inputs, radii[0], num_comp)
         else:
@@ -150,6 +165,44 @@ class ComponentRadiusGraph(BaseTransform):
             if self.static:
                 data.level(level).contact_nbr = nbr
                 data.level(level).contact_mask = mask
+        return self._features(data)
+
+    def _features(self, data: HierarchicalData) -> HierarchicalData:
+        """With ``edge_features``: every level's contact ``edge_attr`` from its current positions."""
+        if self.edge_features:
+            pos = data["l0"].pos
+            for level in range(data.num_levels):
+                pos_k = pos if level == 0 else pos[data.fine_index(level)]
+                store = data.contact(level)
+                store.edge_attr = edge_features(store.edge_index, pos_k, pos_k)
+        return data
+
+    def _plain(self, data: Data) -> Data:
+        """The contact edges of a plain ``Data`` (``pos``/``pos0``, ``component``, ``batch``)."""
+        name = "pos0" if self.positions == "initial" else "pos"
+        for field in (name, "component"):
+            if getattr(data, field, None) is None:
+                raise ValueError(f"ComponentRadiusGraph needs data.{field}")
+        pos, comp = data[name], data.component
+        if comp.dim() != 1 or comp.size(0) != pos.size(0) or comp.is_floating_point():
+            raise ValueError(
+                f"ComponentRadiusGraph: data.component must be a LongTensor [{pos.size(0)}], "
+                f"got {comp.dtype} {list(comp.shape)}"
+            )
+        batch = data.batch if getattr(data, "batch", None) is not None else None
+        pos = _three_d(pos)
+        if self.mode == "radius":
+            data.contact_edge_index = plain_radius_graph(pos, self.r, batch=batch, backend=self.backend)
+        else:
+            num_comp = self.num_components or (int(comp.max()) + 1 if comp.numel() else 1)
+            nbr, mask = component_radius_table(
+                pos, comp, self.r, self.k, num_components=num_comp, batch=batch, backend=self.backend
+            )
+            data.contact_edge_index = table_to_edge_index(nbr, mask)
+            if self.static:
+                data.contact_nbr, data.contact_mask = nbr, mask
+        if self.edge_features:
+            data.contact_edge_attr = edge_features(data.contact_edge_index, data.pos, data.pos)
         return data
 
     def _merged_tables(
@@ -182,7 +235,7 @@ class ComponentRadiusGraph(BaseTransform):
             f"{self.__class__.__name__}(r={self.r}, k={self.k}, "
             f"level_radius_scale={self.level_radius_scale}, num_components={self.num_components}, "
             f"static={self.static}, backend={self.backend!r}, merge_levels={self.merge_levels}, "
-            f"mode={self.mode!r}, positions={self.positions!r})"
+            f"mode={self.mode!r}, positions={self.positions!r}, edge_features={self.edge_features})"
         )
 
 
@@ -204,9 +257,18 @@ def _check_level_scale(scale: float | Sequence[float] | None) -> float | tuple[f
 def _read_level0(data: HierarchicalData, positions: str) -> tuple[Tensor, Tensor]:
     """Positions (field ``positions``) and component ids of the fine level, checked."""
     if not isinstance(data, HierarchicalData):
-        raise ValueError(f"ComponentRadiusGraph expects a HierarchicalData, got {type(data).__name__}")
+        raise ValueError(
+            f"ComponentRadiusGraph expects a HierarchicalData or a Data, got {type(data).__name__}"
+        )
     store = data["l0"]
     for name in (positions, "component"):
         if name not in store:
             raise ValueError(f'ComponentRadiusGraph needs data["l0"].{name}')
-    return store[positions], store.component
+    return _three_d(store[positions]), store.component
+
+
+def _three_d(pos: Tensor) -> Tensor:
+    """2-D positions ``[N, 2]`` as 3-D ones in the plane z = 0 (the same distances); others as given."""
+    if pos.dim() == 2 and pos.size(1) == 2:
+        return torch.cat([pos, pos.new_zeros(pos.size(0), 1)], dim=1)
+    return pos

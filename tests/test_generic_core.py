@@ -1,0 +1,139 @@
+"""The generic core on meshes that are not forming (AMGHierarchy, ComponentRadiusGraph, AMPN): public API."""
+
+import pytest
+import torch
+from torch_geometric.data import Data
+from torch_geometric.loader import DataLoader
+from torch_geometric.transforms import Delaunay, FaceToEdge
+
+from torch_ampn.hierarchy import HierarchicalData
+from torch_ampn.nn import AMPN
+from torch_ampn.transforms import AMGHierarchy, ComponentRadiusGraph
+
+
+def random_mesh(num_nodes: int, seed: int, features: int = 5) -> Data:
+    """A Delaunay mesh of random points in the unit square (float64), with x, y and a graph attribute."""
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.rand(num_nodes, 2, generator=g, dtype=torch.float64)
+    x = torch.randn(num_nodes, features, generator=g, dtype=torch.float64)
+    y = torch.sin(3 * pos[:, :1]) * torch.cos(2 * pos[:, 1:])  # [N, 1] a smooth field
+    return FaceToEdge()(Delaunay()(Data(pos=pos, x=x, y=y, scale=torch.tensor([[float(seed)]]))))
+
+
+@pytest.mark.parametrize("num_nodes", [300, 2000])
+def test_amg_hierarchy_carries_positions_attributes_and_relative_position_features(num_nodes):
+    data = random_mesh(num_nodes, seed=num_nodes)
+    h = AMGHierarchy(max_levels=3, min_coarse_nodes=4)(data)
+    assert isinstance(h, HierarchicalData) and h.num_levels >= 2
+    sizes = h.num_nodes_per_level()
+    assert sizes[0] == num_nodes and all(a > b for a, b in zip(sizes, sizes[1:], strict=False))
+    assert (
+        torch.equal(h["l0"].x, data.x) and torch.equal(h["l0"].y, data.y) and torch.equal(h.scale, data.scale)
+    )
+    assert torch.equal(h["l0", "mesh", "l0"].edge_index, data.edge_index)  # the user's graph as given
+    assert not any(rel == "contact" for _, rel, _ in h.edge_types)
+    for k in range(h.num_levels):
+        # coarse nodes are fine nodes: their positions are their roots'
+        pos_k = h[f"l{k}"].pos
+        assert torch.equal(pos_k, data.pos[h.fine_index(k)])
+        relations = [("mesh", f"l{k}", f"l{k}")]
+        if k + 1 < h.num_levels:
+            relations += [("down", f"l{k}", f"l{k + 1}"), ("up", f"l{k + 1}", f"l{k}")]
+        for rel, src, dst in relations:
+            store = h[src, rel, dst]
+            # by hand, edge by edge: x_i - x_j and its length
+            j, i = store.edge_index.tolist()
+            ps, pd = h[src].pos, h[dst].pos
+            expected = [
+                [*(pd[b] - ps[a]).tolist(), float((pd[b] - ps[a]).norm())] for a, b in zip(j, i, strict=True)
+            ]
+            assert store.edge_attr.shape == (len(j), 3)
+            torch.testing.assert_close(store.edge_attr, torch.tensor(expected, dtype=torch.float64))
+
+
+def test_initial_positions_and_given_edge_features_are_appended():
+    data = random_mesh(400, seed=1)
+    data.pos0 = data.pos + 0.01
+    data.edge_attr = torch.arange(data.edge_index.size(1), dtype=torch.float64)  # [E]
+    h = AMGHierarchy(max_levels=2, min_coarse_nodes=4)(data)
+    mesh0, mesh1 = h["l0", "mesh", "l0"].edge_attr, h["l1", "mesh", "l1"].edge_attr
+    assert mesh0.shape[1] == mesh1.shape[1] == 3 + 3 + 1
+    torch.testing.assert_close(mesh0[:, 3:6], mesh0[:, :3])  # pos0 is pos moved rigidly
+    assert torch.equal(mesh0[:, -1], data.edge_attr) and torch.equal(mesh1[:, -1], torch.zeros(len(mesh1)))
+    assert torch.equal(h["l1"].pos0, data.pos0[h.fine_index(1)])
+
+
+def test_component_radius_graph_on_a_plain_data_never_joins_a_component_to_itself():
+    g = torch.Generator().manual_seed(3)
+    pos = torch.rand(600, 2, generator=g, dtype=torch.float64)
+    component = (pos[:, 0] > 0.5).long() + 2 * (pos[:, 1] > 0.5).long()  # four quadrants
+    r, k = 0.08, 3
+    data = ComponentRadiusGraph(r, k, edge_features=True)(Data(pos=pos, component=component))
+    src, dst = data.contact_edge_index
+    assert src.numel() > 0 and not (component[src] == component[dst]).any()
+    # brute force: every node's k nearest of every other component within r
+    dist = torch.cdist(pos, pos)
+    expected = set()
+    for i in range(pos.size(0)):
+        for c in range(4):
+            if c == component[i]:
+                continue
+            cand = torch.nonzero((component == c) & (dist[i] <= r)).squeeze(1)
+            nearest = cand[dist[i, cand].argsort()[:k]]
+            expected |= {(int(j), i) for j in nearest}
+    assert set(zip(src.tolist(), dst.tolist(), strict=True)) == expected
+    torch.testing.assert_close(data.contact_edge_attr[:, :2], pos[dst] - pos[src])
+    # carried on into the hierarchy as l0's contact relation
+    mesh = FaceToEdge()(Delaunay()(data))
+    h = AMGHierarchy(max_levels=2, min_coarse_nodes=4)(mesh)
+    assert torch.equal(h["l0", "contact", "l0"].edge_index, data.contact_edge_index)
+
+
+def test_a_batch_of_two_meshes_gives_the_two_single_outputs():
+    transform = AMGHierarchy(max_levels=3, min_coarse_nodes=4)
+    a, b = transform(random_mesh(2000, seed=0)), transform(random_mesh(1500, seed=1))
+    assert a.num_levels == b.num_levels == 3
+    torch.manual_seed(0)
+    model = AMPN(5, 1, edge_channels=3, hidden_channels=16, mlp_channels=16, num_levels=3).double()
+    batch = next(iter(DataLoader([a, b], batch_size=2)))
+    out = model(batch)  # [3500, 1]
+    torch.testing.assert_close(out[:2000], model(a), rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[2000:], model(b), rtol=0, atol=1e-12)
+
+
+def test_a_network_without_contact_relations_has_no_contact_parameters():
+    mesh_only = AMPN(5, 1, edge_channels=3, hidden_channels=8, mlp_channels=8, num_levels=2)
+    assert not [n for n, _ in mesh_only.named_parameters() if "contact" in n]
+    both = AMPN(
+        5, 1, edge_channels=3, hidden_channels=8, mlp_channels=8, num_levels=2, relations=("mesh", "contact")
+    )
+    assert [n for n, _ in both.named_parameters() if "contact" in n]
+    with pytest.raises(ValueError, match=r"data\['l0'\].x must be \[N, 5\]"):
+        mesh_only(AMGHierarchy(max_levels=2, min_coarse_nodes=4)(random_mesh(300, seed=0, features=4)))
+
+
+@pytest.mark.parametrize("num_levels", [1, 2])
+def test_ampn_trains_on_unstructured_meshes_of_several_sizes(num_levels):
+    """Every parameter gets a gradient and 40 Adam steps take the error on the field down by half."""
+    transform = AMGHierarchy(max_levels=2, min_coarse_nodes=4)
+    meshes = [transform(random_mesh(n, seed=n)) for n in (500, 700, 900)]
+    for h in meshes:
+        h["l0"].x = torch.cat([h["l0"].x[:, :3], h["l0"].pos], 1).float()
+        for store in h.edge_stores:
+            store.edge_attr = store.edge_attr.float()
+        h["l0"].y = h["l0"].y.float()
+    loader = DataLoader(meshes, batch_size=3)
+    torch.manual_seed(0)
+    model = AMPN(5, 1, edge_channels=3, hidden_channels=16, mlp_channels=16, num_levels=num_levels)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    batch = next(iter(loader))
+    losses = []
+    for step in range(40):
+        optimizer.zero_grad()
+        loss = (model(batch) - batch["l0"].y).square().mean()
+        loss.backward()
+        if step == 0:
+            assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0], losses[::10]
