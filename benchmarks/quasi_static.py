@@ -188,4 +188,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from torch_ampn.utils.tuning import enable_cpu_tuning
+
+    enable_cpu_tuning()  # as the command-line programs do (threads follow the free CPU)
     raise SystemExit(main())

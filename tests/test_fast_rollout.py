@@ -365,7 +365,7 @@ def test_fast_rollout_refuses_another_mesh(long_run, hierarchy):
 def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     long_run, hierarchy, tmp_path, monkeypatch
 ):
-    from torch_ampn.rollout.fast import rollout_settings
+    from torch_ampn.rollout import rollout_settings
     from torch_ampn.training import AMPNLightningModule
     from torch_ampn.training.items import RolloutItem
 
@@ -389,13 +389,12 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     module.eval()
     items = [RolloutItem(i, f"setting{i}", t, hierarchy) for i, t in enumerate(trajs)]
     # batching is what this checks, not compiling (the tests above): the fast path runs eagerly
-    import torch_ampn.rollout.fast as fast_rollout_module
-
     eager_fast_rollout(monkeypatch)
     with torch.no_grad():
         together = module.predict_step(items, 0)
         alone = [module.predict_step(item, 0) for item in items]
-    assert all(not r.compiled for r in fast_rollout_module._CACHE.values() if r.surrogate is module.surrogate)
+    runners = module.surrogate._fast_rollouts.values()  # the surrogate's own cache
+    assert runners and all(not r.compiled for r in runners)
     # other blockings round differently, and 50 autoregressive steps grow that (as above)
     for a, b in zip(together, alone, strict=True):
         torch.testing.assert_close(a, b, atol=5e-4, rtol=0)

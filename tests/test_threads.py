@@ -1,5 +1,7 @@
 """torch_ampn.utils.threads: the package's loops run on the cores other processes leave free."""
 
+import json
+import os
 import subprocess
 import sys
 import time
@@ -8,6 +10,7 @@ import pytest
 import torch
 
 from torch_ampn.utils import threads as th
+from torch_ampn.utils import tuning
 from torch_ampn.utils.threads import GOVERNOR, OtherLoad, ThreadGovernor, follow_free_cpu
 
 STAT = """cpu  {total} 0 0 0 0 0 0 0 0 0
@@ -188,6 +191,10 @@ def test_one_thread_and_no_statistics_change_nothing(restore_threads):
 
 def test_follow_free_cpu_leaves_other_devices_and_off_alone(monkeypatch):
     monkeypatch.delenv("AMPN_THREADS", raising=False)
+    monkeypatch.setattr(tuning, "_enabled", False)
+    with follow_free_cpu("cpu") as threads:  # a library call: the process's threads are its owner's
+        assert threads is not GOVERNOR and GOVERNOR.depth == 0
+    tuning.enable_cpu_tuning()  # what the command-line programs do
     with follow_free_cpu("meta") as threads:
         assert threads is not GOVERNOR and GOVERNOR.depth == 0
     with follow_free_cpu("cpu") as threads:
@@ -204,8 +211,9 @@ def test_follow_free_cpu_leaves_other_devices_and_off_alone(monkeypatch):
 
 @pytest.fixture
 def busy_governor(monkeypatch, restore_threads):
-    """The process's governor, told at every step that another process holds a core."""
+    """The process's governor, told at every step that another process holds a core (CPU tuning on)."""
     monkeypatch.delenv("AMPN_THREADS", raising=False)
+    monkeypatch.setattr(tuning, "_enabled", True)
     # per loop: busy, quiet, quiet
     monkeypatch.setattr(GOVERNOR, "load", FakeLoad([1.0, 0.0, 0.0] * 2))
     monkeypatch.setattr(GOVERNOR, "interval", 0.0)
@@ -286,3 +294,41 @@ def test_a_busy_process_beside_the_loop_takes_a_thread(monkeypatch, restore_thre
     finally:
         busy.kill()
         busy.wait()
+
+
+LIBRARY_CALLS = """
+import json, os, sys
+import torch
+torch.set_num_threads(2)
+environment = dict(os.environ)
+import torch_ampn.cli.train, torch_ampn.cli.data, torch_ampn.design, torch_ampn.rollout, torch_ampn.sim
+from torch_ampn.data import HierarchyCache
+from torch_ampn.forming import AMPNSurrogate
+from torch_ampn.rollout import FastRollout, rollout
+from torch_ampn.utils.threads import GOVERNOR
+
+seen = []
+def predictor(data):
+    seen.append((torch.get_num_threads(), GOVERNOR.depth))
+    return torch.zeros_like(data["l0"].pos)
+
+traj = torch_ampn.sim.simulate(torch_ampn.sim.StampFormingConfig(ply_cells=4, num_steps=2))
+rollout(predictor, traj, HierarchyCache(None, max_levels=2)(traj))
+surrogate = AMPNSurrogate(num_components=traj.num_components, num_grippers=1, num_levels=2,
+                          hidden_channels=8, mlp_channels=8)
+fast = FastRollout(surrogate, HierarchyCache(None, max_levels=2)(traj), compile=False)
+same_environment = dict(os.environ) == environment
+print(json.dumps({"threads": torch.get_num_threads(), "seen": seen, "environment": same_environment,
+                  "retain_heap": fast.retain_heap, "governed": GOVERNOR.depth or len(GOVERNOR.history)}))
+"""
+
+
+def test_importing_and_calling_the_library_leaves_the_process_as_it_was():
+    """Threads, environment and glibc's heap settings belong to the process's owner (a fresh interpreter)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("AMPN_THREADS", "OMP_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", LIBRARY_CALLS], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["threads"] == 2 and result["environment"] and result["governed"] == 0
+    assert result["seen"] == [[2, 0], [2, 0]]  # the rollout ran on the caller's threads, ungoverned
+    assert result["retain_heap"] is False  # no mallopt: glibc's adaptive thresholds stay

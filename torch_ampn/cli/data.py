@@ -339,5 +339,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
+def entry_point() -> None:
+    """Console script ``torch-ampn-data``: :func:`main` with the CPU tuning of a program of its own."""
+    from torch_ampn.utils.tuning import enable_cpu_tuning
+
+    enable_cpu_tuning()
     raise SystemExit(main())
+
+
+if __name__ == "__main__":
+    entry_point()

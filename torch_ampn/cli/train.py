@@ -173,7 +173,9 @@ def entry_point() -> None:
     ``AMPN_TRACEBACK=1`` shows the traceback instead.
     """
     from torch_ampn.data.trajectory import TrajectoryFormatError
+    from torch_ampn.utils.tuning import enable_cpu_tuning
 
+    enable_cpu_tuning()  # a program of its own: threads follow the free CPU (a library call leaves them)
     try:
         if sys.argv[1:2] == ["design"]:  # the design study is not a Lightning subcommand
             from torch_ampn.cli.design import main as design

@@ -5,7 +5,7 @@ convert``, or a simulated one): it supplies the mesh, the components, the fibres
 tools' motion. :func:`template_settings` gives it other gripper settings and returns the
 trajectory a surrogate rolls out (plies at rest after the initial state, as placeholders;
 ``meta["ground_truth"]`` is ``False``), for :func:`~torch_ampn.rollout.rollout`,
-:func:`~torch_ampn.rollout.fast.rollout_settings` or ``torch-ampn predict --data.predict_template``.
+:func:`~torch_ampn.rollout.rollout_settings` or ``torch-ampn predict --data.predict_template``.
 
 Where a gripper grips is given either as
 

@@ -1,22 +1,16 @@
 """Autoregressive rollouts of a next-step predictor over a whole trajectory.
 
 :mod:`~torch_ampn.rollout.plain` rolls out any predictor window by window
-(:func:`rollout`) and holds the error metric (:func:`rollout_rmse`);
+(:func:`rollout_plain`) and holds the error metric (:func:`rollout_rmse`);
 :mod:`~torch_ampn.rollout.fast` rolls an :class:`~torch_ampn.forming.AMPNSurrogate` out with static
-shapes, compiled and batched over process settings (:class:`FastRollout`, :func:`rollout_settings`);
-:func:`rollout_surrogate` (:mod:`~torch_ampn.rollout.surrogate`) is the one place that chooses
-between them for a surrogate.
+shapes, compiled and batched over process settings (:class:`FastRollout`);
+:mod:`~torch_ampn.rollout.surrogate` is the one place that chooses between them
+(:func:`rollout`, :func:`rollout_surrogate`, :func:`rollout_settings`).
 """
 
-from torch_ampn.rollout.fast import (
-    FastPathUnavailable,
-    FastRollout,
-    cached_fast_rollout,
-    fast_path_supported,
-    rollout_settings,
-)
-from torch_ampn.rollout.plain import Predictor, Transform, rollout, rollout_rmse
-from torch_ampn.rollout.surrogate import rollout_surrogate
+from torch_ampn.rollout.fast import FastPathUnavailable, FastRollout, cached_fast_rollout, fast_path_supported
+from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain, rollout_rmse
+from torch_ampn.rollout.surrogate import rollout, rollout_settings, rollout_surrogate
 
 __all__ = [
     "FastPathUnavailable",
@@ -26,6 +20,7 @@ __all__ = [
     "cached_fast_rollout",
     "fast_path_supported",
     "rollout",
+    "rollout_plain",
     "rollout_rmse",
     "rollout_settings",
     "rollout_surrogate",

@@ -51,15 +51,27 @@ from torch_ampn.transforms.candidates import (
 )
 from torch_ampn.transforms.radius import component_radius_table
 from torch_ampn.utils.compile_fallback import EagerFallback
-from torch_ampn.utils.compile_passes import UnfuseBiasAdd
 from torch_ampn.utils.heap import retained_heap
 from torch_ampn.utils.own_code import own_code
 from torch_ampn.utils.threads import follow_free_cpu
+from torch_ampn.utils.tuning import cpu_tuning_enabled
 
-#: FastRollout objects by (surrogate, hierarchy, batch size, compile, device), newest last.
-_CACHE: OrderedDict[tuple, FastRollout] = OrderedDict()
-#: How many :func:`cached_fast_rollout` keeps (each holds its compiled code and its hierarchy).
+#: How many :func:`cached_fast_rollout` keeps per surrogate (each holds its compiled code and its hierarchy).
 CACHE_SIZE = 8
+
+
+class _RunnerCache(OrderedDict):
+    """A surrogate's :class:`FastRollout` objects by (hierarchy, batch size, compile, device), newest last.
+
+    It lives on the surrogate (``surrogate._fast_rollouts``), so it goes when the surrogate goes;
+    copies and pickles of the surrogate start with an empty one (compiled code is not copied).
+    """
+
+    def __deepcopy__(self, memo: dict) -> _RunnerCache:
+        return _RunnerCache()
+
+    def __reduce__(self) -> tuple:
+        return (_RunnerCache, ())
 
 
 def cached_fast_rollout(
@@ -71,66 +83,22 @@ def cached_fast_rollout(
 ) -> FastRollout:
     """A :class:`FastRollout` for these arguments, built at the first call and reused after.
 
-    Reuse matters: building one compiles its step again. The cache holds the last
-    :data:`CACHE_SIZE` (a validation loop over one mesh builds one).
+    Reuse matters: building one compiles its step again. The surrogate keeps its last
+    :data:`CACHE_SIZE` (a validation loop over one mesh builds one); they are released with it.
     """
     dev = torch.device(device) if device is not None else next(surrogate.parameters()).device
-    key = (id(surrogate), id(hierarchy), batch_size, compile, str(dev))
-    runner = _CACHE.get(key)
-    if runner is None or runner.surrogate is not surrogate or runner.source is not hierarchy:
+    cache = surrogate.__dict__.get("_fast_rollouts")
+    if cache is None:
+        cache = surrogate.__dict__["_fast_rollouts"] = _RunnerCache()
+    key = (id(hierarchy), batch_size, compile, str(dev))
+    runner = cache.get(key)
+    if runner is None or runner.source is not hierarchy:
         runner = FastRollout(surrogate, hierarchy, batch_size=batch_size, compile=compile, device=dev)
-        _CACHE[key] = runner
-        while len(_CACHE) > CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    _CACHE.move_to_end(key)
+        cache[key] = runner
+        while len(cache) > CACHE_SIZE:
+            cache.popitem(last=False)
+    cache.move_to_end(key)
     return runner
-
-
-def rollout_settings(
-    surrogate: AMPNSurrogate,
-    trajectories: Sequence[Trajectory],
-    hierarchy: HierarchicalData,
-    batch_size: int = 8,
-    generators: Sequence[torch.Generator | None] | None = None,
-    compile: bool = True,
-    device: torch.device | str | None = None,
-    progress: bool = False,
-) -> list[Tensor]:
-    """Roll out many process settings of one mesh, ``batch_size`` at a time (a design study).
-
-    Args:
-        surrogate: The trained surrogate.
-        trajectories: The settings, e.g. from :func:`~torch_ampn.sim.process_trajectory` (same mesh).
-        hierarchy: The mesh's hierarchy.
-        batch_size: Settings per batch (the last batch is padded).
-        generators: One noise generator per setting (default: generators seeded 0, 1, 2, ...).
-        compile: Compile the step (see :class:`FastRollout`).
-        device: Where to run.
-        progress: Show a progress bar over the batches.
-
-    Returns:
-        One ``[T + 1, N, 3]`` position tensor per setting (CPU), in the given order; equal to
-        rolling each setting out alone with its generator.
-    """
-    trajs = list(trajectories)
-    if generators is None:
-        generators = [torch.Generator(device=device or "cpu").manual_seed(i) for i in range(len(trajs))]
-    reason = fast_path_supported(surrogate)
-    if reason is not None:
-        raise FastPathUnavailable(f"no fast rollout: {reason}")
-    from torch_ampn.rollout.surrogate import rollout_surrogate
-
-    size = min(batch_size, len(trajs))
-    return rollout_surrogate(
-        surrogate,
-        trajs,
-        hierarchy,
-        generators,
-        batch_size=size,
-        compile=compile,
-        device=device,
-        progress=progress,
-    )
 
 
 class FastPathUnavailable(ValueError):
@@ -172,7 +140,9 @@ class FastRollout:
         capacity: Verlet candidates per (node, other component) (default ``2 k + 2``).
         retain_heap: On the CPU, keep freed memory in the process heap while a rollout runs
             (:func:`torch_ampn.utils.heap.retained_heap`, glibc only), so that the step's buffers
-            are not faulted in afresh at every step.
+            are not faulted in afresh at every step. It changes glibc's settings for the whole
+            process, so ``None`` (default) does it only where the process turned the CPU tuning on
+            (:func:`torch_ampn.utils.tuning.enable_cpu_tuning`: the command-line programs do).
         cpp_wrapper: On the CPU, let Inductor write the compiled step's wrapper in C++, so
             that its kernel calls are not made from Python. ``None`` (default): where the
             step is bound by calls rather than arithmetic, ``B N d <=`` :attr:`CPP_WRAPPER_LIMIT`
@@ -201,7 +171,7 @@ class FastRollout:
         candidates: str | Sequence[str] = "auto",
         skin: float | None = None,
         capacity: int | None = None,
-        retain_heap: bool = True,
+        retain_heap: bool | None = None,
         cpp_wrapper: bool | None = None,
     ) -> None:
         reason = fast_path_supported(surrogate)
@@ -211,7 +181,7 @@ class FastRollout:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.surrogate = surrogate
         self.batch_size = b = batch_size
-        self.retain_heap = retain_heap
+        self.retain_heap = cpu_tuning_enabled() if retain_heap is None else bool(retain_heap)
         self.device = torch.device(device) if device is not None else next(surrogate.parameters()).device
         self.num_levels = surrogate.num_levels
         if hierarchy.num_levels < self.num_levels:
@@ -305,11 +275,11 @@ class FastRollout:
             if cpp_wrapper is None:
                 cpp_wrapper = self.elements <= self.CPP_WRAPPER_LIMIT
             self.cpp_wrapper = bool(cpp_wrapper) and not cuda
-            options = (
-                None
-                if cuda
-                else {"post_grad_custom_post_pass": UnfuseBiasAdd(), "cpp_wrapper": self.cpp_wrapper}
-            )
+            options = None
+            if not cuda:
+                from torch_ampn.utils.compile_passes import UnfuseBiasAdd  # Inductor's passes: when compiling
+
+                options = {"post_grad_custom_post_pass": UnfuseBiasAdd(), "cpp_wrapper": self.cpp_wrapper}
             wrap = self._fallback.wrap
             if s.diffusion_steps == 1:  # the whole step in one graph
                 fused = {"mode": "reduce-overhead"} if cuda else {"options": options}

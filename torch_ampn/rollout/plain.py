@@ -29,7 +29,7 @@ Transform = Callable[[HierarchicalData], HierarchicalData]
 
 
 @torch.no_grad()
-def rollout(
+def rollout_plain(
     predictor: Predictor,
     traj: Trajectory,
     hierarchy: HierarchicalData,
@@ -37,12 +37,10 @@ def rollout(
     num_steps: int | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
-    *,
-    fast: bool = False,
-    generator: torch.Generator | None = None,
-    compile: bool = True,
 ) -> Tensor:
-    """Roll ``predictor`` out over ``traj`` from its initial state.
+    """Roll ``predictor`` out over ``traj`` from its initial state, window by window.
+
+    :func:`torch_ampn.rollout.rollout` is this, or the fast path of a surrogate (``fast=True``).
 
     Args:
         predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm.
@@ -56,13 +54,6 @@ def rollout(
         num_steps: Steps to roll out (default: all ``T``).
         device: Where to run (default: the hierarchy's device).
         progress: Show a progress bar.
-        fast: Use the static-shape path (:class:`~torch_ampn.rollout.fast.FastRollout`):
-            ``predictor`` must then be an :class:`~torch_ampn.forming.AMPNSurrogate` (its own contact
-            settings are used; ``contact`` is ignored) and the noise comes from ``generator``.
-            Same result up to floating-point summation order. Where the surrogate's settings
-            have no fast path (plain-radius contact) it warns and takes the plain path.
-        generator: Noise generator of the fast path (the plain path's predictor brings its own).
-        compile: Compile the fast path (``torch.compile``; it warns and runs eagerly where that fails).
 
     Returns:
         Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
@@ -70,18 +61,6 @@ def rollout(
     steps = traj.num_steps if num_steps is None else num_steps
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
-    if fast:
-        from torch_ampn.forming.surrogate import AMPNSurrogate
-        from torch_ampn.rollout.surrogate import rollout_surrogate
-
-        if not isinstance(predictor, AMPNSurrogate):
-            raise TypeError(
-                f"rollout(fast=True) needs an AMPNSurrogate as predictor, got {type(predictor).__name__}"
-            )
-        return rollout_surrogate(
-            predictor, [traj], hierarchy, [generator], compile=compile, device=device, num_steps=steps,
-            progress=progress,
-        )[0]  # fmt: skip
     if device is None:
         device = hierarchy.mesh(0).edge_index.device
     device = torch.device(device)

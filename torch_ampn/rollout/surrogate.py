@@ -18,8 +18,8 @@ from torch import Tensor
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
-from torch_ampn.rollout.fast import cached_fast_rollout, fast_path_supported
-from torch_ampn.rollout.plain import rollout
+from torch_ampn.rollout.fast import FastPathUnavailable, cached_fast_rollout, fast_path_supported
+from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain
 
 
 def rollout_surrogate(
@@ -78,7 +78,7 @@ def rollout_surrogate(
     if fast:
         warnings.warn(f"no fast rollout ({reason}); taking the plain path", RuntimeWarning, stacklevel=3)
     return [
-        rollout(
+        rollout_plain(
             functools.partial(surrogate.predict_residual, generator=g),
             traj,
             hierarchy,
@@ -89,3 +89,103 @@ def rollout_surrogate(
         )
         for traj, g in zip(trajs, gens, strict=True)
     ]
+
+
+@torch.no_grad()
+def rollout(
+    predictor: Predictor,
+    traj: Trajectory,
+    hierarchy: HierarchicalData,
+    contact: Transform | None = None,
+    num_steps: int | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+    *,
+    fast: bool = False,
+    generator: torch.Generator | None = None,
+    compile: bool = True,
+) -> Tensor:
+    """Roll ``predictor`` out over ``traj`` from its initial state.
+
+    Args:
+        predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm.
+        traj: The trajectory: its initial state, mesh, gripper settings and tool motion are
+            used; its ply positions after step 0 are never read.
+        hierarchy: The hierarchy of ``traj``'s mesh (e.g. from
+            :class:`~torch_ampn.data.HierarchyCache`); not modified.
+        contact: Transform that fills the contact edges from current positions (e.g.
+            ``surrogate.contact``); ``None`` for no contact edges. A transform whose
+            ``positions`` is ``"initial"`` runs once, its edges serve every step.
+        num_steps: Steps to roll out (default: all ``T``).
+        device: Where to run (default: the hierarchy's device).
+        progress: Show a progress bar.
+        fast: Use the static-shape path (:class:`~torch_ampn.rollout.fast.FastRollout`):
+            ``predictor`` must then be an :class:`~torch_ampn.forming.AMPNSurrogate` (its own contact
+            settings are used; ``contact`` is ignored) and the noise comes from ``generator``.
+            Same result up to floating-point summation order. Where the surrogate's settings
+            have no fast path (plain-radius contact) it warns and takes the plain path.
+        generator: Noise generator of the fast path (the plain path's predictor brings its own).
+        compile: Compile the fast path (``torch.compile``; it warns and runs eagerly where that fails).
+
+    Returns:
+        Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
+    """
+    if not fast:
+        return rollout_plain(predictor, traj, hierarchy, contact, num_steps, device, progress)
+    if not isinstance(predictor, AMPNSurrogate):
+        raise TypeError(
+            f"rollout(fast=True) needs an AMPNSurrogate as predictor, got {type(predictor).__name__}"
+        )
+    steps = traj.num_steps if num_steps is None else num_steps
+    if not 1 <= steps <= traj.num_steps:
+        raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
+    return rollout_surrogate(
+        predictor, [traj], hierarchy, [generator], compile=compile, device=device, num_steps=steps,
+        progress=progress,
+    )[0]  # fmt: skip
+
+
+def rollout_settings(
+    surrogate: AMPNSurrogate,
+    trajectories: Sequence[Trajectory],
+    hierarchy: HierarchicalData,
+    batch_size: int = 8,
+    generators: Sequence[torch.Generator | None] | None = None,
+    compile: bool = True,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+) -> list[Tensor]:
+    """Roll out many process settings of one mesh, ``batch_size`` at a time (a design study).
+
+    Args:
+        surrogate: The trained surrogate.
+        trajectories: The settings, e.g. from :func:`~torch_ampn.sim.process_trajectory` (same mesh).
+        hierarchy: The mesh's hierarchy.
+        batch_size: Settings per batch (the last batch is padded).
+        generators: One noise generator per setting (default: generators seeded 0, 1, 2, ...).
+        compile: Compile the step (see :class:`FastRollout`).
+        device: Where to run.
+        progress: Show a progress bar over the batches.
+
+    Returns:
+        One ``[T + 1, N, 3]`` position tensor per setting (CPU), in the given order; equal to
+        rolling each setting out alone with its generator.
+    """
+    trajs = list(trajectories)
+    if generators is None:  # on the device the rollout runs on (the noise is drawn there)
+        dev = torch.device(device) if device is not None else next(surrogate.parameters()).device
+        generators = [torch.Generator(device=dev).manual_seed(i) for i in range(len(trajs))]
+    reason = fast_path_supported(surrogate)
+    if reason is not None:
+        raise FastPathUnavailable(f"no fast rollout: {reason}")
+    size = min(batch_size, len(trajs))
+    return rollout_surrogate(
+        surrogate,
+        trajs,
+        hierarchy,
+        generators,
+        batch_size=size,
+        compile=compile,
+        device=device,
+        progress=progress,
+    )

@@ -84,13 +84,10 @@ def _simulate_chunk(args: tuple) -> list[str]:
     family's chunk is one job, whose ``part`` goes into the trajectory's ``meta["part"]``.
     """
     cfg_dict, jobs, write, root, compile_, device, *part = args
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # one process per core; restored for a caller that runs it in-process
-    try:
-        cfg = StampFormingConfig.from_dict(cfg_dict)
-        trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
-    finally:
-        torch.set_num_threads(threads)
+    if mp.parent_process() is not None:
+        torch.set_num_threads(1)  # a worker process: one per core (in-process, the caller's count stays)
+    cfg = StampFormingConfig.from_dict(cfg_dict)
+    trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
     out = []
     for (split, seed), traj, wanted in zip(jobs, trajs, write, strict=True):
         if part and part[0] is not None:

@@ -16,8 +16,11 @@ free (at least one; at most the count torch had when the loop started). A lone t
 no other, so under load the work keeps its share of the CPU, and on a quiet machine it runs as
 torch does. Fewer threads are taken at the first busy look, more only after :data:`CONFIRM`
 quiet ones; looks happen between steps, and a loop's first step looks at once (at the time since
-the previous sample). Without ``/proc/stat`` (not Linux) nothing changes. ``AMPN_THREADS=off``
-leaves torch's thread count alone everywhere.
+the previous sample). Without ``/proc/stat`` (not Linux) nothing changes. It is process-wide
+state, so it happens only where the process's owner asked for it
+(:func:`torch_ampn.utils.tuning.enable_cpu_tuning`: the command-line programs and the
+benchmarks do) or with ``AMPN_THREADS=on``; ``AMPN_THREADS=off`` leaves torch's thread count
+alone everywhere.
 
 Compiled code: Inductor builds a CPU kernel for the thread count in use when it compiles. Built
 on all the cores' count, its parallel regions take their size from torch's count at run time;
@@ -43,6 +46,8 @@ from typing import Any
 
 import torch
 
+from torch_ampn.utils.tuning import cpu_tuning_enabled
+
 #: Seconds between two looks at the CPU (a sample of ``/proc/stat``: 50 clock ticks on 2 cores).
 INTERVAL = 0.25
 #: Cores other processes may use before one of ours counts as taken (system daemons, ``/proc/stat``'s
@@ -62,6 +67,14 @@ BUSY_FIELDS = (0, 1, 2, 5, 6, 7)
 def threads_off() -> bool:
     """Whether ``AMPN_THREADS=off`` asks to leave torch's thread count alone."""
     return os.environ.get("AMPN_THREADS", "").lower() == "off"
+
+
+def following_free_cpu() -> bool:
+    """Whether the package's loops adapt torch's thread count: CPU tuning on, or ``AMPN_THREADS=on``."""
+    setting = os.environ.get("AMPN_THREADS", "").lower()
+    if setting in ("off", "on"):
+        return setting == "on"
+    return cpu_tuning_enabled()
 
 
 class OtherLoad:
@@ -290,8 +303,8 @@ def follow_free_cpu(device: Any = None) -> Iterator[ThreadGovernor | _Idle]:
     """Run a loop on the threads other processes leave free; call ``.step()`` once per step.
 
     Yields the process's :data:`GOVERNOR` (``.step()``, ``.at_ceiling()``); torch's count is
-    restored when the outermost such block ends. Nothing changes for a ``device`` other than
-    the CPU or with ``AMPN_THREADS=off``.
+    restored when the outermost such block ends. Nothing changes unless the process asked for it
+    (:func:`following_free_cpu`), nor for a ``device`` other than the CPU.
 
     Example::
 
@@ -300,7 +313,7 @@ def follow_free_cpu(device: Any = None) -> Iterator[ThreadGovernor | _Idle]:
                 threads.step()
                 train_step(batch)
     """
-    if threads_off() or not (device is None or torch.device(device).type == "cpu"):
+    if not following_free_cpu() or not (device is None or torch.device(device).type == "cpu"):
         yield _Idle()
         return
     before = GOVERNOR.enter()
