@@ -168,7 +168,8 @@ def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
 def entry_point() -> None:
     """Console script ``torch-ampn``: input errors end in one line on stderr (exit status 1), no traceback.
 
-    ``torch-ampn design ...`` runs :mod:`torch_ampn.cli.design`; everything else is the Lightning CLI.
+    ``torch-ampn design ...`` runs :mod:`torch_ampn.cli.design`, ``torch-ampn export ...``
+    :mod:`torch_ampn.cli.export`; everything else is the Lightning CLI.
 
     ``AMPN_TRACEBACK=1`` shows the traceback instead.
     """
@@ -181,6 +182,10 @@ def entry_point() -> None:
             from torch_ampn.cli.design import main as design
 
             design(sys.argv[2:])
+        elif sys.argv[1:2] == ["export"]:  # nor the model file
+            from torch_ampn.cli.export import main as export
+
+            export(sys.argv[2:])
         else:
             main()
     except (ValueError, FileNotFoundError, PermissionError, TrajectoryFormatError) as err:
