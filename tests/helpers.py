@@ -76,7 +76,7 @@ def eager_fast_rollout(monkeypatch) -> None:
     surrounds it (batching, timings tables): compiling it is tested in tests/test_fast_rollout.py."""
     import functools
 
-    import torch_ampn.rollout.fast as fast_rollout_module
+    import torch_ampn.rollout.cache as fast_rollout_module
     import torch_ampn.rollout.surrogate as choice  # the one caller of cached_fast_rollout
 
     eager = functools.partial(fast_rollout_module.cached_fast_rollout, compile=False)

@@ -11,7 +11,8 @@ from torch_ampn.data import HierarchyCache, step_sample
 from torch_ampn.forming import AMPNSurrogate
 from torch_ampn.nn import InterLevelConv, IntraLevelConv, SlottedEdgeIndex, incoming_slots
 from torch_ampn.rollout import rollout
-from torch_ampn.rollout.fast import FastRollout, cached_fast_rollout
+from torch_ampn.rollout.cache import cached_fast_rollout
+from torch_ampn.rollout.fast import FastRollout
 from torch_ampn.testing import contact_edges_brute_force, random_edge_index, small_trajectory
 from torch_ampn.transforms import component_radius_table, table_to_edge_index
 from torch_ampn.transforms.candidates import ContactCandidates

@@ -8,7 +8,8 @@ shapes, compiled and batched over process settings (:class:`FastRollout`);
 (:func:`rollout`, :func:`rollout_surrogate`, :func:`rollout_settings`).
 """
 
-from torch_ampn.rollout.fast import FastPathUnavailable, FastRollout, cached_fast_rollout, fast_path_supported
+from torch_ampn.rollout.cache import cached_fast_rollout
+from torch_ampn.rollout.fast import FastPathUnavailable, FastRollout, fast_path_supported
 from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain, rollout_rmse
 from torch_ampn.rollout.surrogate import rollout, rollout_settings, rollout_surrogate
 

@@ -18,7 +18,8 @@ from torch import Tensor
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
-from torch_ampn.rollout.fast import FastPathUnavailable, cached_fast_rollout, fast_path_supported
+from torch_ampn.rollout.cache import cached_fast_rollout
+from torch_ampn.rollout.fast import FastPathUnavailable, fast_path_supported
 from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain
 
 

@@ -35,6 +35,7 @@ from torch_ampn.training.items import (
     identity_collate,
     list_collate,
 )
+from torch_ampn.training.predict_settings import read_settings
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 from torch_ampn.utils.imports import import_object
 
@@ -346,59 +347,12 @@ class AMPNDataModule(L.LightningDataModule):
         return self._predict_settings()[0]
 
     def _predict_settings(self) -> tuple[list[dict[str, Any]], str]:
-        """``(settings, where they come from)``."""
+        """``(settings, source)``, by :func:`~torch_ampn.training.predict_settings.read_settings`."""
         hp = self.hparams
-        if hp.predict_file:
-            path = Path(hp.predict_file)
-            if not path.is_file():
-                raise FileNotFoundError(f"{path}: no such predict file")
-            text = path.read_text()
-            if path.suffix in (".yaml", ".yml"):
-                import yaml
-
-                try:
-                    settings = yaml.safe_load(text)
-                except yaml.YAMLError as err:
-                    raise ValueError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
-            else:
-                try:
-                    settings = json.loads(text)
-                except json.JSONDecodeError as err:
-                    raise ValueError(f"{path}: not valid JSON ({err})") from None
-            source = str(path)
-        elif hp.predict_gripper_positions is not None or hp.predict_gripper_forces is not None:
-            positions, forces = hp.predict_gripper_positions or [], hp.predict_gripper_forces or []
-            if len(positions) != len(forces):
-                raise ValueError(
-                    f"predict_gripper_positions has {len(positions)} settings, "
-                    f"predict_gripper_forces {len(forces)}"
-                )
-            settings = [
-                {"gripper_positions": p, "gripper_forces": f} for p, f in zip(positions, forces, strict=True)
-            ]
-            source = "data.predict_gripper_positions/forces"
-        else:
-            raise ValueError(
-                "predict needs process settings: data.predict_file, or data.predict_gripper_positions "
-                "and data.predict_gripper_forces"
-            )
-        if not isinstance(settings, list) or not settings:
-            raise ValueError(f"{source}: expected a non-empty list of settings")
-        for i, s in enumerate(settings):
-            where = "gripper_positions"
-            if hp.get("predict_template") and isinstance(s, dict) and "gripper_nodes" in s:
-                where = "gripper_nodes"  # a node of the template's first ply per gripper
-                if "gripper_positions" in s:
-                    raise ValueError(
-                        f"{source}: setting {i}: give gripper_positions or gripper_nodes, not both"
-                    )
-            for key in (where, "gripper_forces"):
-                if not isinstance(s, dict) or key not in s:
-                    raise ValueError(f"{source}: setting {i} lacks field {key!r}")
-                values = s[key] if isinstance(s[key], list) else [s[key]]
-                if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-                    raise ValueError(f"{source}: setting {i}, field {key!r}: expected a list of numbers")
-        return settings, source
+        template = bool(hp.get("predict_template"))
+        return read_settings(
+            hp.predict_file, hp.predict_gripper_positions, hp.predict_gripper_forces, template
+        )
 
     # ---- dataloaders ----------------------------------------------------------------------------
     def train_dataloader(self) -> ResumableLoader:
