@@ -105,5 +105,6 @@ def test_the_error_picture_draws_the_baselines_that_use_the_training_data(tmp_pa
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert labels == ["model", "static", "mean_trajectory", "pod_gp"]
     lines = {line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")}
-    assert lines["pod_gp"].get_ydata().tolist() == [0.0, 1.0, 1.5] and lines["pod_gp"].get_linestyle() == "--"
-    assert lines["model"].get_ydata().tolist() == [0.0, 2.0, 3.0]
+    # from step 1 (step 0 is the given initial state): the mean over the trajectories
+    assert lines["pod_gp"].get_ydata().tolist() == [1.0, 1.5] and lines["pod_gp"].get_linestyle() == "--"
+    assert lines["model"].get_ydata().tolist() == [2.0, 3.0] and lines["model"].get_xdata().tolist() == [1, 2]

@@ -284,8 +284,8 @@ class TestReport:
         for name, (color, style) in styles.items():
             if name not in self.curves:
                 continue
-            curves = torch.stack(self.curves[name])  # [n, T+1]
-            steps = torch.arange(curves.size(1))
+            curves = torch.stack(self.curves[name])[:, 1:]  # [n, T]: step 0 is the given state (error 0)
+            steps = torch.arange(1, curves.size(1) + 1)
             if name == "model":
                 for c in curves:
                     ax.plot(steps, c, color=color, alpha=0.25, lw=0.8)
