@@ -34,7 +34,8 @@ class ComponentRadiusGraph(BaseTransform):
     Positions may be 3-D or 2-D (``[N, 2]``: searched in the plane). On a plain ``Data`` (``pos``
     and a ``component`` vector ``LongTensor[N]``; ``batch`` when batched) it stores the contact
     edges as ``data.contact_edge_index`` ``[2, M]`` (and, with ``static``, ``contact_nbr`` and
-    ``contact_mask``), beside the mesh's ``edge_index``;
+    ``contact_mask``: indices of one graph, which ``Batch`` does not offset), beside the mesh's
+    ``edge_index``;
     :class:`~torch_ampn.transforms.AMGHierarchy` takes them on as ``l0``'s contact relation.
 
     For every node and every *other* component it links the ``k`` nearest nodes of that
