@@ -3,8 +3,8 @@
 Built on the generic layers of :mod:`torch_ampn.nn`: :class:`AMPNSurrogate` turns a window of
 a forming trajectory (:class:`~torch_ampn.data.HierarchicalData`) into the paper's features
 (:mod:`torch_ampn.forming.features`), normalises them (:class:`Normalizer`) and predicts the
-next ply displacements with an :class:`~torch_ampn.nn.AMPN`. :func:`ampn_channels` gives the
-sizes an AMPN needs for these features.
+next ply displacements with a :class:`~torch_ampn.nn.RobinAMPN`. :func:`ampn_channels` gives the
+sizes it needs for these features.
 """
 
 from torch_ampn.forming.features import (

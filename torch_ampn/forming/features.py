@@ -13,7 +13,7 @@ Feature layout (columns, in this order):
   a one-hot of ``num_components`` columns, or the ply's place in its stack), and the
   gripper features of :func:`gripper_features` (``7 G + 7``); for models with prior features,
   :func:`prior_features` (6) last. The N(0, 1) noise input (the
-  noisy target in ROBIN mode) is *not* part of these columns: :class:`~torch_ampn.nn.AMPN`
+  noisy target in ROBIN mode) is *not* part of these columns: :class:`~torch_ampn.nn.RobinAMPN`
   takes it as its own argument and appends it, so that a denoiser can change it per step.
 * coarse (``l1 .. lL``) nodes, :func:`coarse_node_features`: node-type one-hot only.
 * edges, :func:`edge_features`: :math:`x_i - x_j` (3) and its norm (1) on every edge set,

@@ -31,7 +31,7 @@ class AMPNSurrogate(nn.Module):
     r"""Next-step predictor of ply displacements: features -> normalisation -> AMPN -> residual in mm.
 
     It owns everything a checkpoint needs to roll out a trajectory: the network (an
-    :class:`~torch_ampn.nn.AMPN` wrapped in :class:`~torch_ampn.nn.DiffusionAMPN`; ``K = 1`` is plain
+    :class:`~torch_ampn.nn.RobinAMPN` wrapped in :class:`~torch_ampn.nn.DiffusionAMPN`; ``K = 1`` is plain
     AMPN), the :class:`~torch_ampn.forming.Normalizer` of every input kind and of the target (statistics from
     training data, saved in the state dict) and the contact-edge settings
     (:attr:`contact`, a :class:`~torch_ampn.transforms.ComponentRadiusGraph`).
@@ -85,7 +85,7 @@ class AMPNSurrogate(nn.Module):
             ``[N_0, 3]``). The AMPN's own arguments (``**network``) are then unused. Rollouts of
             such a network take the plain path (:func:`~torch_ampn.rollout.rollout`).
         network_options: Keyword arguments of ``network_class``.
-        **network: Further arguments of :class:`~torch_ampn.nn.AMPN`: ``hidden_channels``,
+        **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
     """

@@ -1,4 +1,4 @@
-r"""ROBIN mode: an :class:`~torch_ampn.nn.AMPN` as a DDPM denoiser with ``K`` diffusion steps.
+r"""ROBIN mode: a :class:`~torch_ampn.nn.RobinAMPN` as a DDPM denoiser with ``K`` diffusion steps.
 
 Parameterisation (following ROBIN, arXiv 2506.06045, as described in docs/model.md):
 
@@ -222,7 +222,7 @@ class RobinAMPN(AMPN):
 
 
 class DiffusionAMPN(nn.Module):
-    r"""An :class:`~torch_ampn.nn.AMPN` used as a v-predicting DDPM denoiser (ROBIN mode).
+    r"""A :class:`~torch_ampn.nn.RobinAMPN` used as a v-predicting DDPM denoiser (ROBIN mode).
 
     See the module docstring for the parameterisation; ``num_steps=1`` is plain AMPN
     training and inference.

@@ -87,7 +87,7 @@ class AMPNLightningModule(L.LightningModule):
     * **predict**: rollouts of new process settings without ground truth (XDMF + PNG).
 
     The first arguments, :data:`SURROGATE_ARGUMENTS`, build the
-    :class:`~torch_ampn.forming.AMPNSurrogate` and its :class:`~torch_ampn.nn.AMPN` (documented
+    :class:`~torch_ampn.forming.AMPNSurrogate` and its :class:`~torch_ampn.nn.RobinAMPN` (documented
     there; the defaults are the paper's). They are flat arguments of the module so that configs
     read ``model.num_levels``, the command line takes ``--model.diffusion_steps 5``, the CLI
     links the contact settings into the data module, and checkpoints hold plain values.
