@@ -438,7 +438,7 @@ def hierarchical_features(
 def ampn_channels(
     num_components: int, num_grippers: int, component_encoding: str = "onehot", prior: bool = False
 ) -> dict[str, Any]:
-    """The input sizes an :class:`~torch_ampn.nn.AMPN` needs for these features: ``AMPN(**sizes, ...)``.
+    """The input sizes of a :class:`~torch_ampn.nn.RobinAMPN` for these features: ``RobinAMPN(**sizes)``.
 
     Returns:
         ``{"fine_in_channels": ..., "coarse_in_channels": ..., "edge_channels": {relation: ...}}``.
