@@ -300,6 +300,9 @@ LIBRARY_CALLS = """
 import json, os, sys
 import torch
 torch.set_num_threads(2)
+# third-party imports that set variables of their own (not the package's to judge): lightning
+# PYTORCH_NVML_BASED_CUDA_CHECK and TORCHINDUCTOR_CACHE_DIR, scikit-learn KMP_DUPLICATE_LIB_OK
+import lightning, sklearn
 environment = dict(os.environ)
 import torch_ampn.cli.train, torch_ampn.cli.data, torch_ampn.design, torch_ampn.rollout, torch_ampn.sim
 from torch_ampn.data import HierarchyCache

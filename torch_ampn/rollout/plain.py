@@ -40,23 +40,8 @@ def rollout_plain(
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state, window by window.
 
-    :func:`torch_ampn.rollout.rollout` is this, or the fast path of a surrogate (``fast=True``).
-
-    Args:
-        predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm.
-        traj: The trajectory: its initial state, mesh, gripper settings and tool motion are
-            used; its ply positions after step 0 are never read.
-        hierarchy: The hierarchy of ``traj``'s mesh (e.g. from
-            :class:`~torch_ampn.data.HierarchyCache`); not modified.
-        contact: Transform that fills the contact edges from current positions (e.g.
-            ``surrogate.contact``); ``None`` for no contact edges. A transform whose
-            ``positions`` is ``"initial"`` runs once, its edges serve every step.
-        num_steps: Steps to roll out (default: all ``T``).
-        device: Where to run (default: the hierarchy's device).
-        progress: Show a progress bar.
-
-    Returns:
-        Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
+    The plain path of :func:`torch_ampn.rollout.rollout` (``fast=False``), whose docstring gives
+    the arguments; returns the predicted positions ``[num_steps + 1, N, 3]`` (float32, CPU).
     """
     steps = traj.num_steps if num_steps is None else num_steps
     if not 1 <= steps <= traj.num_steps:

@@ -64,11 +64,6 @@ FRESH = 2.0
 BUSY_FIELDS = (0, 1, 2, 5, 6, 7)
 
 
-def threads_off() -> bool:
-    """Whether ``AMPN_THREADS=off`` asks to leave torch's thread count alone."""
-    return os.environ.get("AMPN_THREADS", "").lower() == "off"
-
-
 def following_free_cpu() -> bool:
     """Whether the package's loops adapt torch's thread count: CPU tuning on, or ``AMPN_THREADS=on``."""
     setting = os.environ.get("AMPN_THREADS", "").lower()
