@@ -102,6 +102,7 @@ class AMPNCLI(LightningCLI):
         parser.link_arguments("model.contact_mode", "data.contact_mode")
         parser.link_arguments("model.contact_positions", "data.contact_positions")
         parser.link_arguments("model.num_levels", "data.max_levels")
+        parser.link_arguments("model.mode", "data.mode")
         parser.add_lightning_class_args(FitProgress, "progress")
 
     def after_fit(self) -> None:
@@ -155,6 +156,8 @@ def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
     """Run (or with ``run=False`` only build) the ``torch-ampn`` CLI; returns it."""
     # Rollout items are moved by the rollout itself (see AMPNLightningModule.transfer_batch_to_device).
     warnings.filterwarnings("ignore", message=".*overridden `transfer_batch_to_device`.*")
+    # configure_model only fits the normalisation statistics (no sharded layers; see the module's hook)
+    warnings.filterwarnings("ignore", message=".*overrides the configure_model callback.*")
     return AMPNCLI(
         AMPNLightningModule,
         AMPNDataModule,

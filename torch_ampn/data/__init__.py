@@ -5,10 +5,12 @@
 """
 
 from torch_ampn.data.dataset import (
+    DirectDataset,
     HierarchyCache,
     StepDataset,
     TrajectoryDataset,
     check_dataset,
+    direct_sample,
     set_window,
     step_sample,
 )
@@ -29,6 +31,7 @@ __all__ = [
     "HierarchyCache",
     "MultiComponentMesh",
     "NodeType",
+    "DirectDataset",
     "StepDataset",
     "Trajectory",
     "TrajectoryDataset",
@@ -47,5 +50,6 @@ __all__ = [
     "gripper_forces",
     "gripper_points",
     "set_window",
+    "direct_sample",
     "step_sample",
 ]

@@ -337,3 +337,45 @@ class StepDataset(torch.utils.data.Dataset):
         if self.cache_samples:
             self._samples[i] = data
         return data
+
+
+def direct_sample(traj: Trajectory, hierarchy: HierarchicalData) -> HierarchicalData:
+    """The initial state of ``traj`` as a direct model's sample: the window at ``t = 1`` and every target.
+
+    The fields of :func:`step_sample` at ``t = 1`` (initial positions, no previous motion, the
+    grippers at :math:`t = 0`), and ``l0.displacement`` ``[N, T, 3]``: :math:`x^t - x^0` of every
+    saved step ``t = 1..T`` (float32), the target of
+    :class:`~torch_ampn.forming.direct.DirectSurrogate`.
+    """
+    data = step_sample(traj, 1, hierarchy)
+    data["l0"].displacement = (traj.pos[1:] - traj.pos[0]).transpose(0, 1).float().contiguous()
+    return data
+
+
+class DirectDataset(StepDataset):
+    """One :func:`direct_sample` per trajectory of a split (arguments as :class:`StepDataset`).
+
+    Sample ``i`` is trajectory ``i`` (all its steps at once); batches with PyG's ``DataLoader``
+    when the trajectories have the same step count.
+    """
+
+    def __len__(self) -> int:
+        return len(self.trajectories)
+
+    def index(self, i: int) -> tuple[int, int]:
+        """``(trajectory index, 1)``: sample ``i`` is trajectory ``i`` from its first window."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"sample {i} out of range for {len(self)} trajectories")
+        return i, 1
+
+    def __getitem__(self, i: int) -> HierarchicalData:
+        if i in self._samples:
+            return self._samples[i]
+        traj = self.trajectories[self.index(i)[0]]
+        data = direct_sample(traj, self.hierarchies(traj))
+        data.traj_index = torch.tensor([i])
+        if self.transform is not None:
+            data = self.transform(data)
+        if self.cache_samples:
+            self._samples[i] = data
+        return data

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -17,6 +14,7 @@ from torch_ampn.forming.features import (
     num_coarse_node_features,
     num_edge_features,
 )
+from torch_ampn.forming.model_file import ModelFile
 from torch_ampn.forming.normalizer import Normalizer
 from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, level_name
 from torch_ampn.nn.ampn import EdgeType
@@ -24,10 +22,9 @@ from torch_ampn.nn.diffusion import DiffusionAMPN, RobinAMPN
 from torch_ampn.nn.multilevel_loss import multilevel_mse
 from torch_ampn.transforms.contact import ComponentRadiusGraph
 from torch_ampn.utils.imports import import_object
-from torch_ampn.utils.io import atomic_torch_save, load_torch_file
 
 
-class AMPNSurrogate(nn.Module):
+class AMPNSurrogate(ModelFile, nn.Module):
     r"""Next-step predictor of ply displacements: features -> normalisation -> AMPN -> residual in mm.
 
     It owns everything a checkpoint needs to roll out a trajectory: the network (an
@@ -348,68 +345,6 @@ class AMPNSurrogate(nn.Module):
             + (", prior_features=True" if self.prior_features else "")
             + (f", network_class={self.network_class!r}" if self.network_class else "")
         )
-
-    # ---- model files ---------------------------------------------------------------------
-    def save(self, path: str | os.PathLike, meta: dict[str, Any] | None = None) -> Path:
-        """Write a model file: the constructor's arguments and ``meta`` as JSON, and the weights.
-
-        :meth:`load` reads it back with ``torch.load(weights_only=True)`` and without Lightning
-        (``torch-ampn export`` writes one from a Lightning checkpoint). The file is written
-        atomically.
-
-        Args:
-            path: The file (``.pt``).
-            meta: JSON-serialisable facts to keep with the model (default: :attr:`meta`).
-
-        Raises:
-            ValueError: If an argument is not JSON-serialisable (e.g. an aggregation module).
-        """
-        try:
-            arguments = json.dumps(self.arguments)
-            facts = json.dumps(self.meta if meta is None else meta)
-        except TypeError as err:
-            raise ValueError(f"{path}: the surrogate's arguments cannot be written as JSON ({err})") from None
-        payload = {
-            "format": MODEL_FILE_FORMAT,
-            "version": MODEL_FILE_VERSION,
-            "arguments": arguments,
-            "meta": facts,
-            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-        }
-        atomic_torch_save(payload, path)
-        return Path(path)
-
-    @classmethod
-    def load(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> AMPNSurrogate:
-        """The surrogate of a model file from :meth:`save`, in eval mode (no Lightning needed).
-
-        Raises:
-            ValueError: One line naming the file and field, if it is not a readable model file.
-        """
-        payload = load_torch_file(path, "torch-ampn model file")
-        if not isinstance(payload, dict) or payload.get("format") != MODEL_FILE_FORMAT:
-            raise ValueError(
-                f"{path}: not a torch-ampn model file (field 'format'); write one with torch-ampn export"
-            )
-        if int(payload.get("version", 0)) > MODEL_FILE_VERSION:
-            version = payload["version"]
-            raise ValueError(f"{path}: field 'version': {version} is newer than this torch-ampn reads")
-        try:
-            arguments, meta = json.loads(payload["arguments"]), json.loads(payload["meta"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise ValueError(f"{path}: field 'arguments' or 'meta' is not JSON ({err})") from None
-        try:
-            surrogate = cls(**arguments)
-            surrogate.load_state_dict(payload["state_dict"])
-        except (TypeError, ValueError, RuntimeError, KeyError) as err:
-            reason = " ".join(str(err).split())[:200]
-            raise ValueError(f"{path}: field 'state_dict' does not fit the arguments ({reason})") from None
-        surrogate.meta = meta
-        return surrogate.to(map_location).eval()
-
-
-#: The ``format`` field of a model file (:meth:`AMPNSurrogate.save`) and its version.
-MODEL_FILE_FORMAT, MODEL_FILE_VERSION = "torch-ampn surrogate", 1
 
 
 def import_network_class(path: str) -> type[nn.Module]:

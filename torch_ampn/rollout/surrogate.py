@@ -16,15 +16,17 @@ import torch
 from torch import Tensor
 
 from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.rollout.cache import cached_fast_rollout
+from torch_ampn.rollout.direct import predict_direct
 from torch_ampn.rollout.fast import FastPathUnavailable, fast_path_supported
 from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain
 
 
 def rollout_surrogate(
-    surrogate: AMPNSurrogate,
+    surrogate: AMPNSurrogate | DirectSurrogate,
     trajectories: Sequence[Trajectory],
     hierarchy: HierarchicalData,
     generators: Sequence[torch.Generator | None],
@@ -37,6 +39,10 @@ def rollout_surrogate(
     progress: bool = False,
 ) -> list[Tensor]:
     """Roll ``surrogate`` out over trajectories of one mesh, each with its noise generator.
+
+    A :class:`~torch_ampn.forming.direct.DirectSurrogate` is not rolled out: it predicts every
+    step in one pass per ``batch_size`` trajectories (:func:`~torch_ampn.rollout.direct.predict_direct`;
+    ``generators``, ``fast`` and ``compile`` do not apply).
 
     Args:
         surrogate: The trained surrogate.
@@ -58,6 +64,11 @@ def rollout_surrogate(
     trajs, gens = list(trajectories), list(generators)
     if len(gens) != len(trajs):
         raise ValueError(f"got {len(gens)} generators for {len(trajs)} trajectories")
+    if isinstance(surrogate, DirectSurrogate):  # no rollout: one pass per batch of settings
+        return predict_direct(
+            surrogate, trajs, hierarchy, batch_size=batch_size, device=device, num_steps=num_steps,
+            progress=progress,
+        )  # fmt: skip
     reason = fast_path_supported(surrogate) if fast else None
     if fast and reason is None:
         runner = cached_fast_rollout(

@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader as TorchDataLoader
 
 from torch_ampn.baselines.prior import fitted_prior, make_prior, out_of_fold_priors
 from torch_ampn.data.dataset import (
+    DirectDataset,
     HierarchyCache,
     StepDataset,
     TrajectoryDataset,
@@ -117,6 +118,9 @@ class AMPNDataModule(L.LightningDataModule):
             :class:`~torch_ampn.training.items.ResumableShuffleSampler`); ``None``: the fit's
             ``seed_everything`` value (0 without one). A fit resumed from a checkpoint continues
             the stopped epoch's order where it stopped.
+        mode: ``"next_step"``: training windows; ``"direct"``: one sample per training trajectory
+            (:class:`~torch_ampn.data.DirectDataset`, kept in memory) for a direct model (linked
+            to the model's ``mode`` by the CLI).
     """
 
     def __init__(
@@ -151,8 +155,11 @@ class AMPNDataModule(L.LightningDataModule):
         prior: str | None = None,
         prior_folds: int = 5,
         make_dataset: str | Callable[..., Any] | None = None,
+        mode: str = "next_step",
     ) -> None:
         super().__init__()
+        if mode not in ("next_step", "direct"):
+            raise ValueError(f"data.mode must be 'next_step' or 'direct', got {mode!r}")
         if predict_batch_size < 1:
             raise ValueError(f"data.predict_batch_size must be >= 1, got {predict_batch_size}")
         # a function object is not a checkpoint's plain value: only its import path is kept
@@ -252,13 +259,14 @@ class AMPNDataModule(L.LightningDataModule):
         """Open the splits the stage needs."""
         hp = self.hparams
         if stage == "fit":
-            self.train_dataset = StepDataset(
+            dataset = DirectDataset if hp.get("mode", "next_step") == "direct" else StepDataset
+            self.train_dataset = dataset(
                 self.data_dir,
                 "train",
                 max_levels=hp.max_levels,
                 min_coarse_nodes=hp.min_coarse_nodes,
                 transform=self.contact,
-                cache_samples=hp.cache_windows,
+                cache_samples=hp.cache_windows or hp.get("mode") == "direct",  # one per trajectory
                 max_cached_mb=hp.trajectory_cache_mb,
                 priors=self._priors("train"),
             )

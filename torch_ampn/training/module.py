@@ -11,6 +11,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.forming.surrogate import AMPNSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 from torch_ampn.rollout import rollout_rmse, rollout_surrogate
@@ -64,6 +65,58 @@ SURROGATE_ARGUMENTS = (
     "network_options",
 )
 
+#: The module's arguments that build a :class:`~torch_ampn.forming.direct.DirectSurrogate` (``mode: direct``).
+DIRECT_ARGUMENTS = (
+    "num_components",
+    "num_grippers",
+    "hidden_channels",
+    "mlp_channels",
+    "num_levels",
+    "pre_layers",
+    "down_layers",
+    "solve_layers",
+    "post_layers",
+    "up_layers",
+    "aggr",
+    "contact_radius",
+    "contact_k",
+    "contact_mode",
+    "component_encoding",
+    "base",
+    "time_frequencies",
+    "decoder_layers",
+    "loss_steps",
+)
+
+#: Next-step settings a direct model has no use for, with the values that mean "off".
+_NEXT_STEP_ONLY = {
+    "diffusion_steps": 1,
+    "prior_features": False,
+    "network_class": None,
+    "predict_change": False,
+    "huber_delta": None,
+    "coarse_loss_weight": 0.0,
+    "pushforward": 0.0,
+}
+MODES = ("next_step", "direct")
+
+
+def build_surrogate(hparams: Any) -> AMPNSurrogate | DirectSurrogate:
+    """The surrogate of the module's arguments: next-step (the paper) or direct (``mode: direct``).
+
+    Raises:
+        ValueError: For an unknown mode, or a next-step setting given to a direct model.
+    """
+    mode = hparams.get("mode", "next_step")
+    if mode not in MODES:
+        raise ValueError(f"model.mode must be one of {MODES}, got {mode!r}")
+    if mode == "next_step":
+        return AMPNSurrogate(**{name: hparams[name] for name in SURROGATE_ARGUMENTS})
+    given = [f"model.{k}={hparams[k]!r}" for k, off in _NEXT_STEP_ONLY.items() if hparams.get(k, off) != off]
+    if given:
+        raise ValueError(f"model.mode direct: {', '.join(given)} belong to the next-step model; drop them")
+    return DirectSurrogate(**{name: hparams[name] for name in DIRECT_ARGUMENTS})
+
 
 class AMPNLightningModule(L.LightningModule):
     r"""Trains an :class:`~torch_ampn.forming.AMPNSurrogate` with the seed paper's recipe.
@@ -106,6 +159,16 @@ class AMPNLightningModule(L.LightningModule):
             peer's model behind an adapter; see :class:`~torch_ampn.forming.AMPNSurrogate`); the AMPN's
             layer arguments below are then unused, and rollouts take the plain path.
         network_options: Keyword arguments of ``network_class``.
+        mode: ``"next_step"`` (the paper: residuals of windows, rolled out) or ``"direct"``: a
+            :class:`~torch_ampn.forming.direct.DirectSurrogate` that maps the initial state and
+            the process settings to the displacement at every saved step in one pass (trained
+            on whole trajectories, ``data.mode: direct``, which the CLI links; no rollout, no
+            training noise). Validation, test, predict and design studies work with both.
+        base: Direct mode: predict the departure from the mean training displacement
+            (``"mean"``, one mesh) or the displacement itself (``"initial"``).
+        time_frequencies: Direct mode: frequencies of the time encoding.
+        decoder_layers: Direct mode: linear maps of the time decoder.
+        loss_steps: Direct mode: random saved steps per batch in the loss (``None``: all).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -192,6 +255,11 @@ class AMPNLightningModule(L.LightningModule):
         prior_features: bool = False,
         network_class: str | None = None,
         network_options: dict[str, Any] | None = None,
+        mode: str = "next_step",
+        base: str = "mean",
+        time_frequencies: int = 5,
+        decoder_layers: int = 3,
+        loss_steps: int | None = None,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
@@ -213,10 +281,10 @@ class AMPNLightningModule(L.LightningModule):
         if not 0.0 <= pushforward <= 1.0:
             raise ValueError(f"pushforward is a probability in [0, 1], got {pushforward}")
         self.save_hyperparameters()
-        self.surrogate = AMPNSurrogate(**{name: self.hparams[name] for name in SURROGATE_ARGUMENTS})
+        self.surrogate = build_surrogate(self.hparams)
         self._report: TestReport | None = None
         # the loss, through the network compiled at the first training step (kept out of the module tree)
-        self._loss = CompiledLoss(self.surrogate, enabled=compile_network)
+        self._loss = CompiledLoss(self.surrogate, enabled=compile_network and not self.direct)
         # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
         self._training_meshes: dict[str, int] | None = None
 
@@ -232,9 +300,28 @@ class AMPNLightningModule(L.LightningModule):
                     _check_writable(Path(folder), name)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
-        if stage == "fit" and datamodule is not None and hasattr(datamodule, "mesh_keys"):
+        if stage == "fit":
+            self._fit_statistics_once(datamodule)
+
+    def configure_model(self) -> None:
+        """Before a fit: the normalisation statistics (and a direct model's mean base), once.
+
+        Weight-averaging callbacks copy the model in their own ``setup``, which runs before the
+        module's and calls this hook first: so the copy holds the statistics too (a direct
+        model's mean base is sized by the data). Outside ``fit`` it does nothing.
+        """
+        if self._trainer is None or self.trainer.state.fn != "fit":
+            return
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "check_model"):
+            datamodule.check_model(self.surrogate)
+        self._fit_statistics_once(datamodule)
+
+    def _fit_statistics_once(self, datamodule: Any) -> None:
+        """The training meshes and, unless frozen (a resumed fit), the statistics from ``datamodule``."""
+        if datamodule is not None and hasattr(datamodule, "mesh_keys"):
             self._training_meshes = datamodule.mesh_keys("train")
-        if stage == "fit" and not self.surrogate.statistics_frozen:
+        if not self.surrogate.statistics_frozen:
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
             self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
@@ -276,9 +363,8 @@ class AMPNLightningModule(L.LightningModule):
             return
         self.hparams.mlp_channels = self.hparams.hidden_channels
         device = next(self.surrogate.parameters()).device
-        arguments = {name: self.hparams[name] for name in SURROGATE_ARGUMENTS}
-        self.surrogate = AMPNSurrogate(**arguments).to(device)
-        self._loss = CompiledLoss(self.surrogate, enabled=self.hparams.compile_network)
+        self.surrogate = build_surrogate(self.hparams).to(device)
+        self._loss = CompiledLoss(self.surrogate, enabled=self.hparams.compile_network and not self.direct)
 
     def fit_statistics(self, samples: Any) -> None:
         """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
@@ -357,14 +443,24 @@ class AMPNLightningModule(L.LightningModule):
         """
         return self._loss(data)
 
+    @property
+    def direct(self) -> bool:
+        """Whether the model is a :class:`~torch_ampn.forming.direct.DirectSurrogate` (``mode: direct``)."""
+        return self.hparams.get("mode", "next_step") == "direct"
+
     def training_inputs(self, batch: HierarchicalData) -> HierarchicalData:
-        """The batch as the loss sees it, in place: pushed forward (probability ``pushforward``), noised."""
+        """The batch as the loss sees it, in place: pushed forward (probability ``pushforward``), noised.
+
+        A direct model's batch (initial states) is taken as it is.
+        """
+        if self.direct:
+            return batch
         if self.hparams.pushforward > 0 and float(torch.rand(())) < self.hparams.pushforward:
             batch = self.pushforward_inputs(batch)
         return self.add_training_noise(batch)
 
     def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
-        """One next-step residual loss on a batch of windows (see :meth:`training_inputs`)."""
+        """One loss on a batch: of next-step windows (see :meth:`training_inputs`) or whole trajectories."""
         loss = self.training_loss(self.training_inputs(batch))
         self.log("train/loss", loss, prog_bar=True, batch_size=batch.num_graphs)
         return loss

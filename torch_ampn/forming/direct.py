@@ -1,0 +1,334 @@
+r"""DirectSurrogate: (initial mesh, process settings) -> the displacement at every saved step, at once.
+
+A next-step surrogate rolls out 50 steps and its error compounds; a regression of whole
+trajectories on the settings (POD + GP) has no rollout. The direct surrogate is the second kind
+on the mesh: one V-cycle of the AMPN over the initial state (the paper's node features at
+:math:`t = 0`, with the gripper features of the process settings, and the contact edges of the
+initial state) gives every node a latent code :math:`\mathbf{h}_i`, and a small decoder maps
+:math:`(\mathbf{h}_i, \gamma(t))` to the node's displacement at time :math:`t` (a Fourier
+encoding of the normalised time). So one network pass predicts every saved step, a design
+study needs one pass per setting, and every prediction has the whole part's reach.
+
+The displacement is predicted as a departure from a base: the mean training displacement of
+every node and step (``base="mean"``, one mesh; the network learns the settings' effect) or
+the initial state (``base="initial"``, any mesh).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torch_ampn.forming.features import (
+    ampn_channels,
+    hierarchical_features,
+    num_coarse_node_features,
+    num_edge_features,
+)
+from torch_ampn.forming.model_file import ModelFile
+from torch_ampn.forming.normalizer import Normalizer
+from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, level_name
+from torch_ampn.nn.diffusion import RobinAMPN
+
+BASES = ("mean", "initial")
+
+
+class TimeEncoding(nn.Module):
+    r"""Fourier features of a normalised time :math:`t \in [0, 1]`.
+
+    :math:`\gamma(t) = [t, \sin(\pi 2^k t), \cos(\pi 2^k t)]_{k < F}`: the lowest frequency is
+    half a period over the process, the highest tells apart :math:`2^{F-1}` stretches of it.
+
+    Shapes:
+        - **input:** :math:`(*)`
+        - **output:** :math:`(*, 2F + 1)`
+    """
+
+    frequencies: Tensor
+
+    def __init__(self, num_frequencies: int = 5) -> None:
+        super().__init__()
+        if num_frequencies < 1:
+            raise ValueError(f"time_frequencies must be >= 1, got {num_frequencies}")
+        k = torch.arange(num_frequencies, dtype=torch.float32)
+        self.register_buffer("frequencies", math.pi * torch.pow(2.0, k), persistent=False)
+
+    @property
+    def out_channels(self) -> int:
+        """``2 F + 1``."""
+        return 2 * self.frequencies.numel() + 1
+
+    def forward(self, t: Tensor) -> Tensor:
+        """``[*] -> [*, 2F + 1]``."""
+        angle = t.float().unsqueeze(-1) * self.frequencies  # [*, F]
+        return torch.cat([t.float().unsqueeze(-1), angle.sin(), angle.cos()], dim=-1)
+
+
+class TimeDecoder(nn.Module):
+    r"""The displacement of every node at every asked time from its latent code: ``[N, d], [S] -> [N, S, 3]``.
+
+    :math:`\mathrm{MLP}(\mathrm{LayerNorm}(\mathbf{h}_i) \oplus \gamma(t))` with SiLU and
+    ``layers`` linear maps; the first is split into a node part and a time part, so that the
+    ``[N, S, d + 2F + 1]`` concatenation is never built.
+
+    Args:
+        latent_channels: ``d``.
+        hidden_channels: Width of the hidden layers.
+        out_channels: Output per node and time (3: a displacement).
+        time_frequencies: ``F`` of :class:`TimeEncoding`.
+        layers: Linear maps (at least 2).
+    """
+
+    def __init__(
+        self,
+        latent_channels: int,
+        hidden_channels: int = 128,
+        out_channels: int = 3,
+        time_frequencies: int = 5,
+        layers: int = 3,
+    ) -> None:
+        super().__init__()
+        if layers < 2:
+            raise ValueError(f"decoder_layers must be >= 2, got {layers}")
+        self.time = TimeEncoding(time_frequencies)
+        self.norm = nn.LayerNorm(latent_channels)
+        self.lin_node = nn.Linear(latent_channels, hidden_channels)
+        self.lin_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
+        rest: list[nn.Module] = []
+        for _ in range(layers - 2):
+            rest += [nn.SiLU(), nn.Linear(hidden_channels, hidden_channels)]
+        self.rest = nn.Sequential(*rest, nn.SiLU(), nn.Linear(hidden_channels, out_channels))
+
+    def forward(self, h: Tensor, t: Tensor) -> Tensor:
+        """``h [N, d]``, ``t [S]`` (normalised times) -> ``[N, S, out_channels]``."""
+        node = self.lin_node(self.norm(h))  # [N, m]
+        time = self.lin_time(self.time(t.to(h.device)))  # [S, m]
+        return self.rest(node[:, None, :] + time[None, :, :])  # [N, S, out]
+
+
+class DirectSurrogate(ModelFile, nn.Module):
+    r"""Predictor of a whole forming trajectory from the initial state and the process settings.
+
+    Inputs are windows at :math:`t = 1` (:func:`~torch_ampn.data.direct_sample`: the initial
+    positions, zero previous motion, the tools' first step, the grippers' positions and forces)
+    with contact edges of the initial state; a batch is a PyG ``Batch`` of them. Training
+    targets are ``data["l0"].displacement`` ``[N, T, 3]``: :math:`x^t - x^0` of every saved step.
+
+    Args:
+        num_components: Components of the mesh (see :class:`~torch_ampn.forming.AMPNSurrogate`).
+        num_grippers: Grippers.
+        num_levels: V-cycle levels (1: a flat network).
+        contact_radius: Contact radius of the initial state's contact edges (mm).
+        contact_k: Contact neighbours per other component.
+        contact_mode: See :class:`~torch_ampn.transforms.ComponentRadiusGraph`.
+        gripper_alpha: Distance decay of the gripper features.
+        component_encoding: ``"onehot"`` or ``"stack"`` (see :func:`~torch_ampn.forming.component_features`).
+        base: ``"mean"``: the output is added to the mean training displacement of every node and
+            step (one mesh, one step count); ``"initial"``: the output is the displacement.
+        time_frequencies: ``F`` of the time encoding.
+        decoder_layers: Linear maps of the time decoder.
+        loss_steps: Saved steps per trajectory in the training loss, drawn at random per batch
+            (``None``: all; fewer save memory on large meshes).
+        **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN` (``hidden_channels``,
+            ``mlp_channels``, the stacks' layer counts, ``aggr``); its output is the latent code,
+            ``hidden_channels`` wide.
+    """
+
+    def __init__(
+        self,
+        num_components: int = 6,
+        num_grippers: int = 2,
+        num_levels: int = 4,
+        contact_radius: float = 3.0,
+        contact_k: int = 3,
+        contact_mode: str = "component_knn",
+        gripper_alpha: float = 3e-2,
+        component_encoding: str = "onehot",
+        base: str = "mean",
+        time_frequencies: int = 5,
+        decoder_layers: int = 3,
+        loss_steps: int | None = None,
+        **network: Any,
+    ) -> None:
+        super().__init__()
+        arguments = {k: v for k, v in locals().items() if k not in ("self", "__class__", "network")}
+        self.arguments: dict[str, Any] = {**arguments, **network}
+        self.meta: dict[str, Any] = {}
+        if base not in BASES:
+            raise ValueError(f"base must be one of {BASES}, got {base!r}")
+        if loss_steps is not None and loss_steps < 1:
+            raise ValueError(f"loss_steps must be >= 1 or None, got {loss_steps}")
+        from torch_ampn.transforms.contact import ComponentRadiusGraph
+
+        self.num_components = num_components
+        self.num_grippers = num_grippers
+        self.num_levels = num_levels
+        self.gripper_alpha = gripper_alpha
+        self.component_encoding = component_encoding
+        self.prior_features = False
+        self.base = base
+        self.loss_steps = loss_steps
+        self.contact = ComponentRadiusGraph(
+            contact_radius, contact_k, num_components=num_components, mode=contact_mode, positions="initial"
+        )
+        sizes = ampn_channels(num_components, num_grippers, component_encoding=component_encoding)
+        latent = int(network.get("hidden_channels", 128))
+        self.model = RobinAMPN(**sizes, out_channels=latent, num_levels=num_levels, **network)
+        self.decoder = TimeDecoder(
+            latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers
+        )
+        self.node_norm = nn.ModuleDict(
+            {"fine": Normalizer(sizes["fine_in_channels"]), "coarse": Normalizer(num_coarse_node_features())}
+        )
+        self.edge_norm = nn.ModuleDict({rel: Normalizer(num_edge_features(rel)) for rel in RELATIONS})
+        self.target_norm = Normalizer(3, center=False)  # the scale of the departure from the base
+        # base="mean": the mean training displacement, one entry per (step, node, axis); sized by the data
+        self.base_norm: Normalizer | None = None
+        self.register_buffer("base_shape", torch.zeros(2, dtype=torch.long))  # (T, N) once known
+
+    # ---- statistics --------------------------------------------------------------------
+    def _normalizers(self) -> list[Normalizer]:
+        base = [] if self.base_norm is None else [self.base_norm]
+        return [*self.node_norm.values(), *self.edge_norm.values(), self.target_norm, *base]
+
+    @property
+    def statistics_frozen(self) -> bool:
+        """Whether the normalisation statistics (and the mean base) are final."""
+        if self.base == "mean" and self.base_norm is None:
+            return False
+        return all(bool(n.frozen) for n in self._normalizers())
+
+    @torch.no_grad()
+    def accumulate_statistics(self, data: HierarchicalData) -> None:
+        """Add one training sample (not a batch) to the statistics and, with ``base="mean"``, the mean."""
+        if "batch" in data["l0"]:
+            raise ValueError("DirectSurrogate.accumulate_statistics takes single samples, not a batch")
+        x_dict, e_dict = self._raw_features(data)
+        for lk, x in x_dict.items():
+            self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
+        for (_, rel, _), e in e_dict.items():
+            self.edge_norm[rel].update(e)
+        fine = data["l0"]
+        disp = fine.displacement.transpose(0, 1)  # [T, N, 3]
+        if self.base == "initial":
+            self.target_norm.update(disp[:, fine.ply_mask])
+            return
+        if self.base_norm is None:
+            self.base_norm = Normalizer(disp.numel()).to(disp.device)
+            self.base_shape.copy_(torch.tensor(disp.shape[:2]))
+        elif tuple(disp.shape[:2]) != tuple(self.base_shape.tolist()):
+            raise ValueError(
+                f"base='mean' needs one mesh and step count: a sample has {disp.size(1)} nodes and "
+                f"{disp.size(0)} steps, the first {self.base_shape[1]} and {self.base_shape[0]} "
+                "(use base='initial' for a family of parts)"
+            )
+        self.base_norm.update(disp.reshape(1, -1))
+        self._ply_mask = fine.ply_mask
+
+    def freeze_statistics(self) -> None:
+        """Freeze every normaliser (``base="mean"``: the departure's scale is the spread about the base)."""
+        if self.base == "mean":
+            if self.base_norm is None:
+                raise RuntimeError("no training sample was seen: the mean base is unknown")
+            steps, nodes = self.base_shape.tolist()
+            m2 = self.base_norm.running_m2.reshape(steps, nodes, 3)[:, self._ply_mask]  # [T, N_ply, 3]
+            self.target_norm.count.fill_(float(self.base_norm.count) * m2.shape[0] * m2.shape[1])
+            self.target_norm.running_m2.copy_(m2.sum((0, 1)))
+        for n in self._normalizers():
+            n.freeze()
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Build the mean base's normaliser at the saved size before its buffers are loaded."""
+        key = prefix + "base_norm.running_mean"
+        if key in state_dict and (
+            self.base_norm is None or self.base_norm.num_features != state_dict[key].numel()
+        ):
+            self.base_norm = Normalizer(state_dict[key].numel()).to(state_dict[key].device)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # ---- features and prediction -------------------------------------------------------
+    def _raw_features(self, data: HierarchicalData):
+        if data.num_levels < self.num_levels:
+            raise ValueError(
+                f"the model uses {self.num_levels} levels but the hierarchy has only {data.num_levels}; "
+                "build a deeper hierarchy (smaller min_coarse_nodes) or lower num_levels"
+            )
+        return hierarchical_features(
+            data, self.num_components, self.num_levels, alpha=self.gripper_alpha,
+            component_encoding=self.component_encoding,
+        )  # fmt: skip
+
+    def latent(self, data: HierarchicalData) -> Tensor:
+        """The latent code of every ``l0`` node from one V-cycle over the initial state, ``[N_0, d]``."""
+        x_dict, e_dict = self._raw_features(data)
+        x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
+        e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
+        empty = torch.empty(2, 0, dtype=torch.long, device=data["l0"].pos.device)
+        index_dict = {key: data[key].edge_index if key in data.edge_types else empty for key in e_dict}
+        batch_dict = None
+        if "batch" in data["l0"]:
+            batch_dict = {level_name(k): data[level_name(k)].batch for k in range(self.num_levels)}
+        return self.model(x_dict, index_dict, e_dict, batch_dict=batch_dict)
+
+    def _base(self, data: HierarchicalData, steps: Tensor) -> Tensor | None:
+        """The mean training displacement at ``steps`` (1-based) of every ``l0`` node ``[N_0, S, 3]``."""
+        if self.base != "mean":
+            return None
+        if self.base_norm is None:
+            raise RuntimeError("the mean base is unknown: accumulate and freeze the statistics first")
+        num_steps, nodes = self.base_shape.tolist()
+        n = data["l0"].num_nodes
+        if n % nodes:
+            raise ValueError(
+                f"base='mean' was fitted on a mesh of {nodes} nodes; this one has {n} "
+                "(a model with base='initial' takes other meshes)"
+            )
+        mean = self.base_norm.running_mean.reshape(num_steps, nodes, 3).float()[steps - 1]  # [S, N, 3]
+        return mean.transpose(0, 1).repeat(n // nodes, 1, 1)  # [N_0, S, 3]
+
+    def _check_steps(self, num_steps: int) -> None:
+        if self.base == "mean" and num_steps != int(self.base_shape[0]):
+            raise ValueError(
+                f"base='mean' was fitted on trajectories of {int(self.base_shape[0])} steps, not {num_steps}"
+            )
+
+    def predict_displacement(
+        self, data: HierarchicalData, num_steps: int, steps: Tensor | None = None
+    ) -> Tensor:
+        r"""Displacement :math:`x^t - x^0` in mm of every ``l0`` node at ``steps``, ``[N_0, S, 3]``.
+
+        Args:
+            data: Initial-state samples (one or a batch).
+            num_steps: Saved steps ``T`` of the trajectory (times are ``steps / T``).
+            steps: The steps ``LongTensor[S]`` in ``1..T`` (default: all).
+        """
+        self._check_steps(num_steps)
+        device = data["l0"].pos.device
+        steps = torch.arange(1, num_steps + 1, device=device) if steps is None else steps.to(device)
+        out = self.target_norm.denormalize(self.decoder(self.latent(data), steps / num_steps))
+        base = self._base(data, steps)
+        return out if base is None else out + base
+
+    def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
+        """MSE of the normalised departure from the base over ply nodes and (``loss_steps`` random) steps."""
+        fine = data["l0"]
+        num_steps = fine.displacement.size(1)
+        self._check_steps(num_steps)
+        steps = torch.arange(1, num_steps + 1, device=fine.pos.device)
+        if self.loss_steps is not None and self.loss_steps < num_steps:
+            pick = torch.randperm(num_steps, generator=generator)[: self.loss_steps].sort().values
+            steps = steps[pick.to(steps.device)]
+        ply = fine.ply_mask
+        target = fine.displacement[ply][:, steps - 1]  # [N_ply, S, 3]
+        base = self._base(data, steps)
+        if base is not None:
+            target = target - base[ply]
+        out = self.decoder(self.latent(data)[ply], steps / num_steps)  # [N_ply, S, 3]: tools are prescribed
+        return (out - self.target_norm(target)).square().mean()
+
+    def extra_repr(self) -> str:
+        """Data sizes shown by ``repr``."""
+        return f"num_components={self.num_components}, num_grippers={self.num_grippers}, base={self.base!r}"

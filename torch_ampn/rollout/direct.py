@@ -1,0 +1,77 @@
+"""Whole trajectories from a :class:`~torch_ampn.forming.direct.DirectSurrogate`, one pass per batch."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+from torch_geometric.data import Batch
+
+from torch_ampn.data.dataset import direct_sample
+from torch_ampn.data.trajectory import Trajectory
+from torch_ampn.forming.direct import DirectSurrogate
+from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
+
+
+def _input(surrogate: DirectSurrogate, traj: Trajectory, hierarchy: HierarchicalData) -> HierarchicalData:
+    """The initial-state sample of ``traj`` with the surrogate's contact edges (its ground truth unused)."""
+    data = direct_sample(traj, hierarchy)
+    del data["l0"].displacement  # the future is what is predicted, never read
+    return surrogate.contact(data)
+
+
+@torch.no_grad()
+def predict_direct(
+    surrogate: DirectSurrogate,
+    trajectories: Sequence[Trajectory],
+    hierarchy: HierarchicalData,
+    batch_size: int = 8,
+    device: torch.device | str | None = None,
+    num_steps: int | None = None,
+    progress: bool = False,
+) -> list[Tensor]:
+    """The positions of every saved step of trajectories of one mesh, ``batch_size`` per network pass.
+
+    Ply nodes move by the predicted displacement; tool nodes follow each trajectory's prescribed
+    motion (``traj.pos``), as in a rollout. The trajectories' ply positions after step 0 are never read.
+
+    Args:
+        surrogate: The trained direct surrogate.
+        trajectories: Their initial states, gripper settings and tool motion are used.
+        hierarchy: The mesh's hierarchy.
+        batch_size: Trajectories per network pass.
+        device: Where to run (default: the surrogate's device).
+        num_steps: Steps to predict (default: all).
+        progress: A progress bar over the batches.
+
+    Returns:
+        One ``[num_steps + 1, N, 3]`` position tensor per trajectory (float32, CPU), in order.
+    """
+    trajs = list(trajectories)
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    device = torch.device(device) if device is not None else next(surrogate.parameters()).device
+    starts = range(0, len(trajs), batch_size)
+    if progress and len(starts) > 1:
+        from tqdm.auto import tqdm
+
+        starts = tqdm(starts, desc="settings", unit="batch")
+    out: list[Tensor] = []
+    for i in starts:
+        part = trajs[i : i + batch_size]
+        total = part[0].num_steps
+        if any(t.num_steps != total for t in part):
+            raise ValueError("predict_direct: the trajectories of a batch must have one step count")
+        steps = total if num_steps is None else num_steps
+        if not 1 <= steps <= total:
+            raise ValueError(f"num_steps must be in 1..{total}, got {steps}")
+        batch = Batch.from_data_list([_input(surrogate, t, hierarchy) for t in part]).to(device)
+        disp = surrogate.predict_displacement(batch, total, torch.arange(1, steps + 1))  # [B N, S, 3]
+        disp = disp.float().cpu().split([t.num_nodes for t in part])
+        for traj, d in zip(part, disp, strict=True):
+            pos = traj.pos[: steps + 1].float().clone()  # tools: their prescribed motion
+            ply = traj.ply_mask
+            pos[1:, ply] = pos[0, ply] + d.transpose(0, 1)[:, ply]
+            out.append(pos)
+    return out
