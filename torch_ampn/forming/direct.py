@@ -80,6 +80,7 @@ class TimeDecoder(nn.Module):
         out_channels: Output per node and time (3: a displacement).
         time_frequencies: ``F`` of :class:`TimeEncoding`.
         layers: Linear maps (at least 2).
+        cond_channels: Columns of a per-node condition read with the latent code (e.g. the settings).
     """
 
     def __init__(
@@ -89,22 +90,24 @@ class TimeDecoder(nn.Module):
         out_channels: int = 3,
         time_frequencies: int = 5,
         layers: int = 3,
+        cond_channels: int = 0,
     ) -> None:
         super().__init__()
         if layers < 2:
             raise ValueError(f"decoder_layers must be >= 2, got {layers}")
         self.time = TimeEncoding(time_frequencies)
         self.norm = nn.LayerNorm(latent_channels)
-        self.lin_node = nn.Linear(latent_channels, hidden_channels)
+        self.lin_node = nn.Linear(latent_channels + cond_channels, hidden_channels)
         self.lin_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
         rest: list[nn.Module] = []
         for _ in range(layers - 2):
             rest += [nn.SiLU(), nn.Linear(hidden_channels, hidden_channels)]
         self.rest = nn.Sequential(*rest, nn.SiLU(), nn.Linear(hidden_channels, out_channels))
 
-    def forward(self, h: Tensor, t: Tensor) -> Tensor:
-        """``h [N, d]``, ``t [S]`` (normalised times) -> ``[N, S, out_channels]``."""
-        node = self.lin_node(self.norm(h))  # [N, m]
+    def forward(self, h: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
+        """``h [N, d]``, ``t [S]`` (normalised times), ``cond [N, c]`` -> ``[N, S, out_channels]``."""
+        h = self.norm(h)
+        node = self.lin_node(h if cond is None else torch.cat([h, cond.to(h.dtype)], dim=-1))  # [N, m]
         time = self.lin_time(self.time(t.to(h.device)))  # [S, m]
         return self.rest(node[:, None, :] + time[None, :, :])  # [N, S, out]
 
@@ -132,6 +135,11 @@ class DirectSurrogate(ModelFile, nn.Module):
         decoder_layers: Linear maps of the time decoder.
         loss_steps: Saved steps per trajectory in the training loss, drawn at random per batch
             (``None``: all; fewer save memory on large meshes).
+        settings_input: Give every fine node and the decoder the grippers' positions and forces
+            at :math:`t = 0` (``6 G`` numbers, normalised) besides the paper's distance-decayed
+            gripper features: a global code of the process settings.
+        position_frequencies: Fourier features of the initial position read by the decoder
+            (frequencies per axis; 0: none).
         **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN` (``hidden_channels``,
             ``mlp_channels``, the stacks' layer counts, ``aggr``); its output is the latent code,
             ``hidden_channels`` wide.
@@ -151,6 +159,8 @@ class DirectSurrogate(ModelFile, nn.Module):
         time_frequencies: int = 5,
         decoder_layers: int = 3,
         loss_steps: int | None = None,
+        settings_input: bool = True,
+        position_frequencies: int = 4,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -176,9 +186,16 @@ class DirectSurrogate(ModelFile, nn.Module):
         )
         sizes = ampn_channels(num_components, num_grippers, component_encoding=component_encoding)
         latent = int(network.get("hidden_channels", 128))
+        self.settings_input = bool(settings_input)
+        code = 6 * num_grippers if self.settings_input else 0  # grippers' positions and forces at t = 0
+        sizes["fine_in_channels"] += code
         self.model = RobinAMPN(**sizes, out_channels=latent, num_levels=num_levels, **network)
+        self.settings_norm = Normalizer(max(code, 1))
+        self.position_frequencies = int(position_frequencies)
+        self.position_norm = Normalizer(3)  # of the initial positions: what the Fourier features read
+        cond = code + 6 * self.position_frequencies
         self.decoder = TimeDecoder(
-            latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers
+            latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers, cond
         )
         self.node_norm = nn.ModuleDict(
             {"fine": Normalizer(sizes["fine_in_channels"]), "coarse": Normalizer(num_coarse_node_features())}
@@ -187,12 +204,20 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.target_norm = Normalizer(3, center=False)  # the scale of the departure from the base
         # base="mean": the mean training displacement, one entry per (step, node, axis); sized by the data
         self.base_norm: Normalizer | None = None
-        self.register_buffer("base_shape", torch.zeros(2, dtype=torch.long))  # (T, N) once known
+        # (T, N) of the mean base once known: extra state, not a buffer (weight averaging would average it)
+        self.base_shape: tuple[int, int] = (0, 0)
 
     # ---- statistics --------------------------------------------------------------------
     def _normalizers(self) -> list[Normalizer]:
         base = [] if self.base_norm is None else [self.base_norm]
-        return [*self.node_norm.values(), *self.edge_norm.values(), self.target_norm, *base]
+        return [
+            *self.node_norm.values(),
+            *self.edge_norm.values(),
+            self.target_norm,
+            self.settings_norm,
+            self.position_norm,
+            *base,
+        ]
 
     @property
     def statistics_frozen(self) -> bool:
@@ -207,6 +232,10 @@ class DirectSurrogate(ModelFile, nn.Module):
         if "batch" in data["l0"]:
             raise ValueError("DirectSurrogate.accumulate_statistics takes single samples, not a batch")
         x_dict, e_dict = self._raw_features(data)
+        self.position_norm.update(data["l0"].pos0)
+        if self.settings_input:
+            self.settings_norm.update(self._settings(data))
+            x_dict["l0"] = torch.cat([x_dict["l0"], self._settings(data, per_node=True)], dim=-1)
         for lk, x in x_dict.items():
             self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
         for (_, rel, _), e in e_dict.items():
@@ -218,8 +247,8 @@ class DirectSurrogate(ModelFile, nn.Module):
             return
         if self.base_norm is None:
             self.base_norm = Normalizer(disp.numel()).to(disp.device)
-            self.base_shape.copy_(torch.tensor(disp.shape[:2]))
-        elif tuple(disp.shape[:2]) != tuple(self.base_shape.tolist()):
+            self.base_shape = (disp.size(0), disp.size(1))
+        elif tuple(disp.shape[:2]) != self.base_shape:
             raise ValueError(
                 f"base='mean' needs one mesh and step count: a sample has {disp.size(1)} nodes and "
                 f"{disp.size(0)} steps, the first {self.base_shape[1]} and {self.base_shape[0]} "
@@ -233,12 +262,21 @@ class DirectSurrogate(ModelFile, nn.Module):
         if self.base == "mean":
             if self.base_norm is None:
                 raise RuntimeError("no training sample was seen: the mean base is unknown")
-            steps, nodes = self.base_shape.tolist()
+            steps, nodes = self.base_shape
             m2 = self.base_norm.running_m2.reshape(steps, nodes, 3)[:, self._ply_mask]  # [T, N_ply, 3]
             self.target_norm.count.fill_(float(self.base_norm.count) * m2.shape[0] * m2.shape[1])
             self.target_norm.running_m2.copy_(m2.sum((0, 1)))
         for n in self._normalizers():
             n.freeze()
+
+    def get_extra_state(self) -> dict[str, list[int]]:
+        """The mean base's shape ``(T, N)``, saved in the state dict."""
+        return {"base_shape": list(self.base_shape)}
+
+    def set_extra_state(self, state: dict[str, list[int]]) -> None:
+        """Restore :meth:`get_extra_state`."""
+        steps, nodes = state["base_shape"]
+        self.base_shape = (int(steps), int(nodes))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
         """Build the mean base's normaliser at the saved size before its buffers are loaded."""
@@ -261,9 +299,46 @@ class DirectSurrogate(ModelFile, nn.Module):
             component_encoding=self.component_encoding,
         )  # fmt: skip
 
+    @staticmethod
+    def _settings(data: HierarchicalData, per_node: bool = False) -> Tensor:
+        """The grippers' positions and forces at :math:`t = 0`, ``[B, 6G]`` (``per_node``: ``[N_0, 6G]``)."""
+        code = torch.cat([data.gripper_pos, data.gripper_force], dim=-1).flatten(1).float()  # [B, 6G]
+        if not per_node:
+            return code
+        fine = data["l0"]
+        batch = (
+            fine.batch
+            if "batch" in fine
+            else torch.zeros(fine.num_nodes, dtype=torch.long, device=code.device)
+        )
+        return code[batch]
+
+    def _condition(self, data: HierarchicalData) -> Tensor | None:
+        r"""What the decoder reads besides the latent code, ``[N_0, c]`` (``None``: nothing).
+
+        The normalised settings (``settings_input``) and Fourier features of the normalised
+        initial position, :math:`\sin(2^k \hat x), \cos(2^k \hat x)`, ``k < position_frequencies``
+        per axis: a displacement field's shape over the part is then quick to learn.
+        """
+        parts = []
+        if self.settings_input:
+            parts.append(self.settings_norm(self._settings(data, per_node=True)))
+        if self.position_frequencies > 0:
+            x = self.position_norm(data["l0"].pos0.float())  # [N_0, 3]
+            scale = torch.pow(2.0, torch.arange(self.position_frequencies, device=x.device, dtype=x.dtype))
+            angle = (x[:, :, None] * scale).flatten(1)  # [N_0, 3 F]
+            parts += [angle.sin(), angle.cos()]
+        return torch.cat(parts, dim=-1) if parts else None
+
     def latent(self, data: HierarchicalData) -> Tensor:
-        """The latent code of every ``l0`` node from one V-cycle over the initial state, ``[N_0, d]``."""
+        """The latent code of every ``l0`` node from one V-cycle over the initial state, ``[N_0, d]``.
+
+        With ``settings_input`` the fine nodes also read the normalised settings (the grippers'
+        positions and forces at :math:`t = 0`; the decoder reads them too).
+        """
         x_dict, e_dict = self._raw_features(data)
+        if self.settings_input:
+            x_dict["l0"] = torch.cat([x_dict["l0"], self._settings(data, per_node=True)], dim=-1)
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
         empty = torch.empty(2, 0, dtype=torch.long, device=data["l0"].pos.device)
@@ -279,7 +354,7 @@ class DirectSurrogate(ModelFile, nn.Module):
             return None
         if self.base_norm is None:
             raise RuntimeError("the mean base is unknown: accumulate and freeze the statistics first")
-        num_steps, nodes = self.base_shape.tolist()
+        num_steps, nodes = self.base_shape
         n = data["l0"].num_nodes
         if n % nodes:
             raise ValueError(
@@ -290,9 +365,9 @@ class DirectSurrogate(ModelFile, nn.Module):
         return mean.transpose(0, 1).repeat(n // nodes, 1, 1)  # [N_0, S, 3]
 
     def _check_steps(self, num_steps: int) -> None:
-        if self.base == "mean" and num_steps != int(self.base_shape[0]):
+        if self.base == "mean" and num_steps != self.base_shape[0]:
             raise ValueError(
-                f"base='mean' was fitted on trajectories of {int(self.base_shape[0])} steps, not {num_steps}"
+                f"base='mean' was fitted on trajectories of {self.base_shape[0]} steps, not {num_steps}"
             )
 
     def predict_displacement(
@@ -308,7 +383,8 @@ class DirectSurrogate(ModelFile, nn.Module):
         self._check_steps(num_steps)
         device = data["l0"].pos.device
         steps = torch.arange(1, num_steps + 1, device=device) if steps is None else steps.to(device)
-        out = self.target_norm.denormalize(self.decoder(self.latent(data), steps / num_steps))
+        out = self.decoder(self.latent(data), steps / num_steps, self._condition(data))
+        out = self.target_norm.denormalize(out)
         base = self._base(data, steps)
         return out if base is None else out + base
 
@@ -326,7 +402,9 @@ class DirectSurrogate(ModelFile, nn.Module):
         base = self._base(data, steps)
         if base is not None:
             target = target - base[ply]
-        out = self.decoder(self.latent(data)[ply], steps / num_steps)  # [N_ply, S, 3]: tools are prescribed
+        cond = self._condition(data)
+        cond = None if cond is None else cond[ply]
+        out = self.decoder(self.latent(data)[ply], steps / num_steps, cond)  # [N_ply, S, 3]: tools prescribed
         return (out - self.target_norm(target)).square().mean()
 
     def extra_repr(self) -> str:

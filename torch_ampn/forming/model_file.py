@@ -51,7 +51,10 @@ class ModelFile:
             "kind": type(self).__name__,
             "arguments": arguments,
             "meta": facts,
-            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},  # type: ignore[attr-defined]
+            "state_dict": {  # tensors, and a module's extra state as it is
+                k: v.detach().cpu() if isinstance(v, torch.Tensor) else v
+                for k, v in self.state_dict().items()  # type: ignore[attr-defined]
+            },
         }
         atomic_torch_save(payload, path)
         return Path(path)

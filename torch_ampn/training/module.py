@@ -86,6 +86,8 @@ DIRECT_ARGUMENTS = (
     "time_frequencies",
     "decoder_layers",
     "loss_steps",
+    "settings_input",
+    "position_frequencies",
 )
 
 #: Next-step settings a direct model has no use for, with the values that mean "off".
@@ -169,6 +171,10 @@ class AMPNLightningModule(L.LightningModule):
         time_frequencies: Direct mode: frequencies of the time encoding.
         decoder_layers: Direct mode: linear maps of the time decoder.
         loss_steps: Direct mode: random saved steps per batch in the loss (``None``: all).
+        settings_input: Direct mode: the grippers' positions and forces at t = 0 as a global
+            input of every fine node and of the decoder.
+        position_frequencies: Direct mode: Fourier features of the initial position read by the
+            decoder (frequencies per axis; 0: none).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -260,6 +266,8 @@ class AMPNLightningModule(L.LightningModule):
         time_frequencies: int = 5,
         decoder_layers: int = 3,
         loss_steps: int | None = None,
+        settings_input: bool = True,
+        position_frequencies: int = 4,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,

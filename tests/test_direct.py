@@ -1,0 +1,233 @@
+"""The direct model: (initial state, settings) -> displacement at every step, without a rollout."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from torch_ampn.data import DirectDataset, HierarchyCache, TrajectoryDataset
+from torch_ampn.forming.direct import DirectSurrogate, TimeEncoding
+from torch_ampn.rollout.direct import predict_direct
+from torch_ampn.rollout.surrogate import rollout_surrogate
+
+SMALL = dict(
+    hidden_channels=16, mlp_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
+    post_layers=1, up_layers=1, contact_radius=3.0, contact_k=1,
+)  # fmt: skip
+
+
+def _fitted(data_dir, **kwargs) -> tuple[DirectSurrogate, DirectDataset]:
+    torch.manual_seed(0)
+    model = DirectSurrogate(**{**SMALL, **kwargs})
+    train = DirectDataset(data_dir, "train", max_levels=2, transform=model.contact)
+    for i in range(len(train)):
+        model.accumulate_statistics(train[i])
+    model.freeze_statistics()
+    return model, train
+
+
+def _hierarchy(traj):
+    return HierarchyCache(None, max_levels=2)(traj)
+
+
+def test_the_mean_base_and_the_target_scale_match_a_float64_reference(tiny_data):
+    model, train = _fitted(tiny_data)
+    disp = torch.stack([t.pos[1:].double() - t.pos[0].double() for t in train.trajectories])  # [K, T, N, 3]
+    mean = disp.mean(0)  # [T, N, 3]
+    steps = torch.arange(1, disp.size(1) + 1)
+    base = model._base(train[0], steps)  # [N, T, 3]
+    torch.testing.assert_close(base.double(), mean.transpose(0, 1), atol=1e-5, rtol=1e-5)
+    ply = train.trajectories[0].ply_mask
+    spread = (disp - mean)[:, :, ply].reshape(-1, 3)  # departures of every ply entry
+    torch.testing.assert_close(model.target_norm.std, spread.square().mean(0).sqrt(), rtol=1e-6, atol=1e-9)
+
+
+def test_a_zero_output_predicts_the_mean_training_trajectory_and_the_tools_prescribed_motion(tiny_data):
+    model, train = _fitted(tiny_data)
+    last = model.decoder.rest[-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    (pred,) = predict_direct(model.eval(), [traj], _hierarchy(traj))
+    mean = torch.stack([t.pos.float() - t.pos[0].float() for t in train.trajectories]).mean(0)
+    ply = traj.ply_mask
+    torch.testing.assert_close(pred[:, ply], traj.pos[0, ply].float() + mean[:, ply], atol=1e-4, rtol=0)
+    torch.testing.assert_close(pred[:, ~ply], traj.pos[:, ~ply].float())
+
+
+def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(tiny_data):
+    model, _ = _fitted(tiny_data)
+    trajs = [TrajectoryDataset(tiny_data, s)[0] for s in ("test", "val", "train")]
+    h = _hierarchy(trajs[0])
+    alone = [predict_direct(model.eval(), [t], h)[0] for t in trajs]
+    together = predict_direct(model, trajs, h, batch_size=2)
+    for a, b in zip(alone, together, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    scrambled = trajs[0].pos.clone()
+    scrambled[1:, trajs[0].ply_mask] += 100.0  # the ply's future: never an input
+    (same,) = predict_direct(model, [dataclasses.replace(trajs[0], pos=scrambled)], h)
+    torch.testing.assert_close(same[:, trajs[0].ply_mask], alone[0][:, trajs[0].ply_mask])
+    # rollout_surrogate, the path of test/predict/design, takes the direct one
+    (routed,) = rollout_surrogate(model, [trajs[0]], h, [None], batch_size=4)
+    torch.testing.assert_close(routed, alone[0])
+
+
+def test_it_learns_the_two_settings_apart(tiny_data):
+    """Fitted on two settings, each prediction is far closer to its own run than the mean is."""
+    model, train = _fitted(tiny_data, base="mean", hidden_channels=32, mlp_channels=32)
+    from torch_geometric.data import Batch
+
+    batch = Batch.from_data_list([train[0], train[1]])
+    optimizer = torch.optim.Adam(model.parameters(), lr=5e-3)
+    for _ in range(100):
+        optimizer.zero_grad()
+        model.loss(batch).backward()
+        optimizer.step()
+    h = _hierarchy(train.trajectories[0])
+    trajs = list(train.trajectories)
+    preds = predict_direct(model.eval(), trajs, h)
+    mean = torch.stack([t.pos.float() for t in trajs]).mean(0)
+    for traj, pred in zip(trajs, preds, strict=True):
+        ply = traj.ply_mask
+        error = (pred[1:, ply] - traj.pos[1:, ply]).norm(dim=-1).mean()
+        of_mean = (mean[1:, ply] - traj.pos[1:, ply]).norm(dim=-1).mean()
+        assert error < 0.5 * of_mean, (float(error), float(of_mean))
+
+
+def test_the_initial_base_predicts_the_displacement_itself(tiny_data):
+    model, train = _fitted(tiny_data, base="initial")
+    assert model.base_norm is None and model._base(train[0], torch.arange(1, 3)) is None
+    disp = torch.cat(
+        [t.pos[1:, t.ply_mask].double() - t.pos[0, t.ply_mask].double() for t in train.trajectories]
+    )
+    # the scale only (center=False): the standard deviation of every ply displacement of every step
+    reference = disp.reshape(-1, 3).std(0, correction=0)
+    torch.testing.assert_close(model.target_norm.std, reference, rtol=1e-6, atol=0)
+
+
+def test_a_model_file_round_trip_and_a_file_of_the_other_kind_is_refused(tiny_data, tmp_path):
+    from torch_ampn.forming import AMPNSurrogate
+
+    model, _ = _fitted(tiny_data)
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    h = _hierarchy(traj)
+    path = model.save(tmp_path / "direct.pt", {"note": "x"})
+    loaded = DirectSurrogate.load(path)
+    assert loaded.statistics_frozen and loaded.meta == {"note": "x"}
+    torch.testing.assert_close(
+        predict_direct(loaded, [traj], h)[0], predict_direct(model.eval(), [traj], h)[0]
+    )
+    with pytest.raises(
+        ValueError, match=r"direct\.pt: field 'kind': a DirectSurrogate model, not a AMPNSurrogate"
+    ):
+        AMPNSurrogate.load(path)
+
+
+def test_one_line_errors():
+    with pytest.raises(ValueError, match="base must be one of"):
+        DirectSurrogate(base="median")
+    with pytest.raises(ValueError, match="time_frequencies must be >= 1"):
+        TimeEncoding(0)
+    from torch_ampn.training import AMPNLightningModule
+
+    with pytest.raises(
+        ValueError, match=r"model.mode direct: model.diffusion_steps=5 belong to the next-step"
+    ):
+        AMPNLightningModule(mode="direct", diffusion_steps=5)
+    with pytest.raises(ValueError, match="model.mode must be one of"):
+        AMPNLightningModule(mode="oneshot")
+
+
+def test_the_time_encoding_is_a_hand_computed_case():
+    code = TimeEncoding(2)(torch.tensor([0.25]))
+    pi = torch.pi
+    expected = torch.tensor(
+        [[0.25, torch.sin(torch.tensor(pi / 4)), 1.0, torch.cos(torch.tensor(pi / 4)), 0.0]]
+    )
+    torch.testing.assert_close(code, expected, atol=1e-6, rtol=0)
+
+
+def test_direct_arguments_of_the_module_match_the_direct_surrogate():
+    import inspect
+
+    from torch_ampn.nn import RobinAMPN
+    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training.module import DIRECT_ARGUMENTS
+
+    module = inspect.signature(AMPNLightningModule).parameters
+    owners = {**inspect.signature(RobinAMPN).parameters, **inspect.signature(DirectSurrogate).parameters}
+    for name in DIRECT_ARGUMENTS:
+        assert name in module and name in owners, name
+        if name not in ("contact_radius",):  # the module's default is the paper's, as the surrogate's
+            assert module[name].default == owners[name].default, name
+
+
+@pytest.mark.xdist_group("tiny_fit")
+def test_cli_fit_with_weight_averaging_test_predict_and_export_of_a_direct_model(tiny_data, tmp_path, capsys):
+    """The CLI path end to end; the averaged checkpoint keeps the mean base of the training runs."""
+    import csv
+    import json
+
+    import yaml
+    from make_fixtures import fit_config
+
+    from torch_ampn.cli.export import main as export
+    from torch_ampn.cli.train import main
+    from torch_ampn.training import AMPNLightningModule
+
+    config_path, out = fit_config(tmp_path / "fit", tiny_data)
+    config = yaml.safe_load(config_path.read_text())
+    config["model"].update(mode="direct", loss_steps=3, fast_rollout=True)
+    config["trainer"]["max_steps"] = 4
+    config["trainer"]["val_check_interval"] = 2
+    config["trainer"]["callbacks"].append(
+        {"class_path": "lightning.pytorch.callbacks.EMAWeightAveraging", "init_args": {"decay": 0.9}}
+    )
+    config_path.write_text(yaml.safe_dump(config))
+    main(["fit", "--config", str(config_path)])
+    ckpt = out / "ckpt" / "last.ckpt"
+    module = AMPNLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    surrogate = module.surrogate
+    assert isinstance(surrogate, DirectSurrogate) and surrogate.statistics_frozen
+    train = TrajectoryDataset(tiny_data, "train")
+    mean = torch.stack([t.pos[1:].double() - t.pos[0].double() for t in train]).mean(0)  # [T, N, 3]
+    saved = surrogate.base_norm.running_mean.reshape(mean.shape)
+    torch.testing.assert_close(saved, mean, atol=1e-6, rtol=1e-6)
+
+    capsys.readouterr()
+    common = ["--data.data_dir", str(tiny_data), "--data.generate", "false", "--data.min_coarse_nodes", "4"]
+    main(["test", "--ckpt_path", str(ckpt), *common, "--model.output_dir", str(out / "reports")])
+    printed = capsys.readouterr().out
+    assert "best setting-aware baseline" in printed
+    with open(out / "reports" / "test_rmse.csv") as f:
+        rows = list(csv.DictReader(f))
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    (pred,) = predict_direct(surrogate, [traj], _hierarchy(traj))
+    from torch_ampn.rollout import rollout_rmse
+
+    by_hand = float(rollout_rmse(pred, traj.pos, traj.ply_mask)[1:].mean())
+    assert float(rows[0]["model"]) == pytest.approx(by_hand, rel=1e-4)
+    summary = json.loads((out / "reports" / "test_summary.json").read_text())
+    assert {"setting_baseline_rmse", "mean_trajectory_rmse", "setting_effect_r2"} <= set(summary)
+
+    settings = tmp_path / "settings.yaml"
+    settings.write_text(
+        yaml.safe_dump([{"name": "wide", "gripper_positions": [0.2, 0.8], "gripper_forces": [90.0, 10.0]}])
+    )
+    main(
+        [
+            "predict",
+            "--ckpt_path",
+            str(ckpt),
+            *common,
+            "--data.predict_file",
+            str(settings),
+            "--model.output_dir",
+            str(out / "reports"),
+        ]
+    )
+    assert (out / "reports" / "predict" / "wide.json").is_file()
+
+    path = export([str(ckpt), str(tmp_path / "direct.pt")])
+    loaded = DirectSurrogate.load(path)
+    torch.testing.assert_close(predict_direct(loaded, [traj], _hierarchy(traj))[0], pred)
