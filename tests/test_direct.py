@@ -67,6 +67,8 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
     scrambled[1:, trajs[0].ply_mask] += 100.0  # the ply's future: never an input
     (same,) = predict_direct(model, [dataclasses.replace(trajs[0], pos=scrambled)], h)
     torch.testing.assert_close(same[:, trajs[0].ply_mask], alone[0][:, trajs[0].ply_mask])
+    (last,) = predict_direct(model, [trajs[0]], h, final=True)  # the formed part alone
+    torch.testing.assert_close(last, alone[0][-1], atol=1e-5, rtol=1e-5)
     # rollout_surrogate, the path of test/predict/design, takes the direct one
     (routed,) = rollout_surrogate(model, [trajs[0]], h, [None], batch_size=4)
     torch.testing.assert_close(routed, alone[0])

@@ -30,6 +30,7 @@ def predict_direct(
     device: torch.device | str | None = None,
     num_steps: int | None = None,
     progress: bool = False,
+    final: bool = False,
 ) -> list[Tensor]:
     """The positions of every saved step of trajectories of one mesh, ``batch_size`` per network pass.
 
@@ -44,9 +45,12 @@ def predict_direct(
         device: Where to run (default: the surrogate's device).
         num_steps: Steps to predict (default: all).
         progress: A progress bar over the batches.
+        final: Predict the last step only (what a design study of the formed part needs: the
+            decoder runs for one time instead of ``T``).
 
     Returns:
-        One ``[num_steps + 1, N, 3]`` position tensor per trajectory (float32, CPU), in order.
+        One ``[num_steps + 1, N, 3]`` position tensor per trajectory (float32, CPU), in order;
+        with ``final``, one ``[N, 3]`` tensor of the positions at step ``num_steps``.
     """
     trajs = list(trajectories)
     if batch_size < 1:
@@ -67,9 +71,15 @@ def predict_direct(
         if not 1 <= steps <= total:
             raise ValueError(f"num_steps must be in 1..{total}, got {steps}")
         batch = Batch.from_data_list([_input(surrogate, t, hierarchy) for t in part]).to(device)
-        disp = surrogate.predict_displacement(batch, total, torch.arange(1, steps + 1))  # [B N, S, 3]
+        asked = torch.tensor([steps]) if final else torch.arange(1, steps + 1)
+        disp = surrogate.predict_displacement(batch, total, asked)  # [B N, S, 3]
         disp = disp.float().cpu().split([t.num_nodes for t in part])
         for traj, d in zip(part, disp, strict=True):
+            if final:
+                pos = traj.pos[steps].float().clone()  # tools: their prescribed position
+                pos[traj.ply_mask] = traj.pos[0, traj.ply_mask].float() + d[traj.ply_mask, 0]
+                out.append(pos)
+                continue
             pos = traj.pos[: steps + 1].float().clone()  # tools: their prescribed motion
             ply = traj.ply_mask
             pos[1:, ply] = pos[0, ply] + d.transpose(0, 1)[:, ply]

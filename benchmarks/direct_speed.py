@@ -1,0 +1,147 @@
+"""Seconds per setting for the formed part: the direct model against the embedded simulator.
+
+    python benchmarks/direct_speed.py --checkpoint CKPT --settings 32 --batch 8 \
+        --out benchmarks/results/direct/speed.json
+
+For ``--settings`` gripper settings (random, seeded) at each ``--resolutions`` entry: the
+direct model's final state (``predict_direct(final=True)``, ``--batch`` settings per network
+pass, eager; one warm-up batch first) and, at the coarse resolution, the simulator's whole run
+of the same settings (compiled, batches of 16, a warm-up batch of 2 first so that compiling is
+not counted), side by side in one process. The simulator at the paper resolution takes about
+11 minutes per setting on 2 cores; ``--paper-simulator-json`` reads its seconds per trajectory
+from ``benchmarks/simulate.py``'s JSON (its date and machine are printed with it) instead of
+running it. Without ``--checkpoint`` the direct model has the config's architecture and
+untrained weights (the cost is the same); the time includes building each setting's input
+(features, contact edges of the initial state), not the hierarchy (once per mesh, printed).
+Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from torch_ampn.data import HierarchyCache, direct_sample
+from torch_ampn.rollout.direct import predict_direct
+from torch_ampn.sim import StampFormingConfig, process_trajectory, simulate_batch
+from torch_ampn.utils.io import atomic_write_text
+
+CONFIG = Path(__file__).resolve().parents[1] / "examples" / "configs" / "direct.yaml"
+
+
+def random_settings(n: int, seed: int) -> list[tuple[list[float], list[float]]]:
+    """``n`` gripper settings: edge fractions in [0.2, 0.8], forces in [20, 100] N (two grippers)."""
+    g = torch.Generator().manual_seed(seed)
+    where = 0.2 + 0.6 * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    force = 20.0 + 80.0 * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    return [(w.tolist(), f.tolist()) for w, f in zip(where, force, strict=True)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--checkpoint", type=Path, default=None)
+    parser.add_argument("--resolutions", nargs="+", choices=["coarse", "paper"], default=["coarse", "paper"])
+    parser.add_argument("--settings", type=int, default=32)
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--paper-simulator-json", type=Path, default=Path("benchmarks/results/simulate_paper_v3.json")
+    )
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/direct/speed.json"))
+    args = parser.parse_args()
+    rows = []
+    settings = random_settings(args.settings, args.seed)
+    for resolution in args.resolutions:
+        cfg = StampFormingConfig() if resolution == "coarse" else StampFormingConfig.paper()
+        model = load_model(args.checkpoint, cfg)
+        trajs = [process_trajectory(cfg, w, f) for w, f in settings]
+        start = time.perf_counter()
+        hierarchy = HierarchyCache(None, max_levels=model.num_levels)(trajs[0])
+        hierarchy_seconds = time.perf_counter() - start
+        with torch.inference_mode():
+            predict_direct(
+                model, trajs[: args.batch], hierarchy, batch_size=args.batch, final=True
+            )  # warm-up
+            start = time.perf_counter()
+            predict_direct(model, trajs, hierarchy, batch_size=args.batch, final=True)
+            direct = (time.perf_counter() - start) / len(trajs)
+        row = {
+            "resolution": resolution,
+            "nodes": trajs[0].num_nodes,
+            "settings": len(trajs),
+            "batch": args.batch,
+            "direct_seconds_per_setting": direct,
+            "hierarchy_seconds_once_per_mesh": hierarchy_seconds,
+        }
+        if resolution == "coarse":
+            simulate_batch(cfg, [0, 1], settings=settings[:2], compile=True)  # compile, not counted
+            start = time.perf_counter()
+            for i in range(0, len(settings), 16):
+                part = settings[i : i + 16]
+                simulate_batch(cfg, list(range(i, i + len(part))), settings=part, compile=True)
+            row["simulator_seconds_per_setting"] = (time.perf_counter() - start) / len(settings)
+            row["simulator_source"] = "measured here, side by side"
+        elif args.paper_simulator_json.is_file():
+            recorded = json.loads(args.paper_simulator_json.read_text())
+            per = [
+                r["seconds_per_trajectory"] for r in recorded.get("rows", []) if "seconds_per_trajectory" in r
+            ]
+            if per:
+                row["simulator_seconds_per_setting"] = min(per)
+                row["simulator_source"] = f"{args.paper_simulator_json} ({recorded.get('date', 'undated')})"
+        if "simulator_seconds_per_setting" in row:
+            row["speed_up"] = row["simulator_seconds_per_setting"] / direct
+        rows.append(row)
+        print(json.dumps(row))
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads",
+        "checkpoint": str(args.checkpoint) if args.checkpoint else None,
+        "rows": rows,
+    }
+    atomic_write_text(args.out, json.dumps(result, indent=2))
+    print(f"{'resolution':<11}{'nodes':>8}{'direct s':>10}{'simulator s':>13}{'speed-up':>10}")
+    for r in rows:
+        sim = r.get("simulator_seconds_per_setting", float("nan"))
+        print(
+            f"{r['resolution']:<11}{r['nodes']:>8}{r['direct_seconds_per_setting']:>10.3f}{sim:>13.2f}"
+            f"{r.get('speed_up', float('nan')):>10.1f}"
+        )
+
+
+def load_model(checkpoint: Path | None, cfg: StampFormingConfig):
+    """The trained direct surrogate, or the config's architecture with one setting's statistics."""
+    if checkpoint is not None:
+        from torch_ampn.training import AMPNLightningModule
+
+        return AMPNLightningModule.load_from_checkpoint(checkpoint, map_location="cpu").surrogate.eval()
+    import inspect
+
+    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training.module import build_surrogate
+
+    sig = inspect.signature(AMPNLightningModule.__init__).parameters
+    hp = {k: p.default for k, p in sig.items() if p.default is not inspect.Parameter.empty}
+    hp.update(yaml.safe_load(CONFIG.read_text())["model"])
+    model = build_surrogate(hp)
+    traj = process_trajectory(cfg, [0.5, 0.5], [50.0, 50.0])
+    sample = model.contact(direct_sample(traj, HierarchyCache(None, max_levels=model.num_levels)(traj)))
+    model.accumulate_statistics(sample)  # the cost does not depend on the statistics
+    model.freeze_statistics()
+    return model.eval()
+
+
+if __name__ == "__main__":
+    from torch_ampn.utils.tuning import enable_cpu_tuning
+
+    enable_cpu_tuning()
+    main()
