@@ -20,7 +20,14 @@ from torch_ampn.cli.train import main  # noqa: E402
 from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "examples" / "configs"
-NAMES = ["quickstart.yaml", "paper.yaml", "family.yaml", "settings.yaml", "settings_prior.yaml"]
+NAMES = [
+    "quickstart.yaml",
+    "paper.yaml",
+    "family.yaml",
+    "settings.yaml",
+    "settings_prior.yaml",
+    "direct.yaml",
+]
 
 
 def _build(name, tmp_path, monkeypatch):
@@ -59,8 +66,14 @@ def test_config_builds_model_data_and_trainer(name, tmp_path, monkeypatch):
     assert [len(s) for s in (net.pre, net.down, net.solve, net.post, net.up)] == layers
     assert net.num_layers == sum(layers)
     assert surrogate.contact.k == hp.contact_k and surrogate.contact.r == hp.contact_radius
-    assert surrogate.diffusion_steps == hp.diffusion_steps == 1
-    assert model._compiled_network is (None if hp.compile_network else False)  # compiles at the first step
+    if hp.mode == "direct":  # the data module yields whole trajectories for it (the CLI's link)
+        assert type(surrogate).__name__ == "DirectSurrogate" and dm.hparams.mode == "direct"
+    else:
+        assert surrogate.diffusion_steps == hp.diffusion_steps == 1
+        assert model._compiled_network is (
+            None if hp.compile_network else False
+        )  # compiles at the first step
+        assert dm.hparams.mode == "next_step"
 
     # the CLI links the model's contact settings and level count into the data module
     assert dm.hparams.contact_k == hp.contact_k and dm.hparams.contact_radius == hp.contact_radius
