@@ -92,12 +92,14 @@ def main() -> None:
             row["simulator_source"] = "measured here, side by side"
         elif args.paper_simulator_json.is_file():
             recorded = json.loads(args.paper_simulator_json.read_text())
-            per = [
-                r["seconds_per_trajectory"] for r in recorded.get("rows", []) if "seconds_per_trajectory" in r
-            ]
+            runs = [r for r in recorded.get("results", []) if r.get("resolution") == "paper"]
+            per = [r.get("first_run_seconds_per_trajectory", r["seconds_per_trajectory"]) for r in runs]
             if per:
+                meta = recorded.get("meta", {})
                 row["simulator_seconds_per_setting"] = min(per)
-                row["simulator_source"] = f"{args.paper_simulator_json} ({recorded.get('date', 'undated')})"
+                row["simulator_source"] = (
+                    f"{args.paper_simulator_json} ({meta.get('date', 'undated')}, {meta.get('device', '')})"
+                )
         if "simulator_seconds_per_setting" in row:
             row["speed_up"] = row["simulator_seconds_per_setting"] / direct
         rows.append(row)
