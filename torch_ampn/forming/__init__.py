@@ -1,12 +1,14 @@
-"""The stamp-forming surrogate: its input features, normalisers and the next-step predictor.
+"""The stamp-forming surrogates: their input features, normalisers, the next-step and the direct predictor.
 
 Built on the generic layers of :mod:`torch_ampn.nn`: :class:`AMPNSurrogate` turns a window of
 a forming trajectory (:class:`~torch_ampn.data.HierarchicalData`) into the paper's features
 (:mod:`torch_ampn.forming.features`), normalises them (:class:`Normalizer`) and predicts the
-next ply displacements with a :class:`~torch_ampn.nn.RobinAMPN`. :func:`ampn_channels` gives the
-sizes it needs for these features.
+next ply displacements with a :class:`~torch_ampn.nn.RobinAMPN`; :class:`DirectSurrogate` predicts
+every step of a trajectory at once from the initial state and the settings. :func:`ampn_channels`
+gives the sizes they need for these features.
 """
 
+from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.forming.features import (
     ampn_channels,
     coarse_node_features,
@@ -27,6 +29,7 @@ from torch_ampn.forming.surrogate import AMPNSurrogate
 
 __all__ = [
     "AMPNSurrogate",
+    "DirectSurrogate",
     "Normalizer",
     "ampn_channels",
     "coarse_node_features",
