@@ -55,19 +55,10 @@ def subset(data_dir: Path, n: int, root: Path) -> Path:
 
 def parameters(model: dict) -> int:
     """Parameters of the direct model of these ``model`` settings."""
+    from torch_ampn.cli.train import MODULE_DEFAULTS
     from torch_ampn.training.module import build_surrogate
 
-    hp = {**_module_defaults(), **model}
-    return sum(p.numel() for p in build_surrogate(hp).parameters())
-
-
-def _module_defaults() -> dict:
-    import inspect
-
-    from torch_ampn.training import AMPNLightningModule
-
-    sig = inspect.signature(AMPNLightningModule.__init__).parameters
-    return {k: p.default for k, p in sig.items() if p.default is not inspect.Parameter.empty}
+    return sum(p.numel() for p in build_surrogate({**MODULE_DEFAULTS, **model}).parameters())
 
 
 def variant_model(name: str, base: dict) -> dict:

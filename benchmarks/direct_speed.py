@@ -130,15 +130,10 @@ def load_model(checkpoint: Path | None, cfg: StampFormingConfig):
         from torch_ampn.training import AMPNLightningModule
 
         return AMPNLightningModule.load_from_checkpoint(checkpoint, map_location="cpu").surrogate.eval()
-    import inspect
-
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.cli.train import MODULE_DEFAULTS
     from torch_ampn.training.module import build_surrogate
 
-    sig = inspect.signature(AMPNLightningModule.__init__).parameters
-    hp = {k: p.default for k, p in sig.items() if p.default is not inspect.Parameter.empty}
-    hp.update(yaml.safe_load(CONFIG.read_text())["model"])
-    model = build_surrogate(hp)
+    model = build_surrogate({**MODULE_DEFAULTS, **yaml.safe_load(CONFIG.read_text())["model"]})
     traj = process_trajectory(cfg, [0.5, 0.5], [50.0, 50.0])
     sample = model.contact(direct_sample(traj, HierarchyCache(None, max_levels=model.num_levels)(traj)))
     model.accumulate_statistics(sample)  # the cost does not depend on the statistics

@@ -325,12 +325,15 @@ class StepDataset(torch.utils.data.Dataset):
         j = int(torch.searchsorted(self.offsets, torch.tensor(i), right=True)) - 1
         return j, i - int(self.offsets[j]) + 1
 
+    def sample(self, traj: Trajectory, t: int) -> HierarchicalData:
+        """The sample of ``traj`` at step ``t`` (:func:`step_sample`), before the transform."""
+        return step_sample(traj, t, self.hierarchies(traj))
+
     def __getitem__(self, i: int) -> HierarchicalData:
         if i in self._samples:
             return self._samples[i]
         j, t = self.index(i)
-        traj = self.trajectories[j]
-        data = step_sample(traj, t, self.hierarchies(traj))
+        data = self.sample(self.trajectories[j], t)
         data.traj_index = torch.tensor([j])
         if self.transform is not None:
             data = self.transform(data)
@@ -368,14 +371,6 @@ class DirectDataset(StepDataset):
             raise IndexError(f"sample {i} out of range for {len(self)} trajectories")
         return i, 1
 
-    def __getitem__(self, i: int) -> HierarchicalData:
-        if i in self._samples:
-            return self._samples[i]
-        traj = self.trajectories[self.index(i)[0]]
-        data = direct_sample(traj, self.hierarchies(traj))
-        data.traj_index = torch.tensor([i])
-        if self.transform is not None:
-            data = self.transform(data)
-        if self.cache_samples:
-            self._samples[i] = data
-        return data
+    def sample(self, traj: Trajectory, t: int) -> HierarchicalData:
+        """The whole trajectory from its initial state (:func:`direct_sample`), before the transform."""
+        return direct_sample(traj, self.hierarchies(traj))

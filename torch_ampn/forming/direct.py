@@ -235,7 +235,6 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.position_norm.update(data["l0"].pos0)
         if self.settings_input:
             self.settings_norm.update(self._settings(data))
-            x_dict["l0"] = torch.cat([x_dict["l0"], self._settings(data, per_node=True)], dim=-1)
         for lk, x in x_dict.items():
             self.node_norm["fine" if lk == "l0" else "coarse"].update(x)
         for (_, rel, _), e in e_dict.items():
@@ -289,15 +288,19 @@ class DirectSurrogate(ModelFile, nn.Module):
 
     # ---- features and prediction -------------------------------------------------------
     def _raw_features(self, data: HierarchicalData):
+        """The paper's features of the used levels, the fine nodes' with the settings (``settings_input``)."""
         if data.num_levels < self.num_levels:
             raise ValueError(
                 f"the model uses {self.num_levels} levels but the hierarchy has only {data.num_levels}; "
                 "build a deeper hierarchy (smaller min_coarse_nodes) or lower num_levels"
             )
-        return hierarchical_features(
+        x_dict, e_dict = hierarchical_features(
             data, self.num_components, self.num_levels, alpha=self.gripper_alpha,
             component_encoding=self.component_encoding,
         )  # fmt: skip
+        if self.settings_input:
+            x_dict["l0"] = torch.cat([x_dict["l0"], self._settings(data, per_node=True)], dim=-1)
+        return x_dict, e_dict
 
     @staticmethod
     def _settings(data: HierarchicalData, per_node: bool = False) -> Tensor:
@@ -337,8 +340,6 @@ class DirectSurrogate(ModelFile, nn.Module):
         positions and forces at :math:`t = 0`; the decoder reads them too).
         """
         x_dict, e_dict = self._raw_features(data)
-        if self.settings_input:
-            x_dict["l0"] = torch.cat([x_dict["l0"], self._settings(data, per_node=True)], dim=-1)
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
         empty = torch.empty(2, 0, dtype=torch.long, device=data["l0"].pos.device)

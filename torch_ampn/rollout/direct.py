@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch
 
-from torch_ampn.data.dataset import direct_sample
+from torch_ampn.data.dataset import step_sample
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
@@ -16,9 +16,7 @@ from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 
 def _input(surrogate: DirectSurrogate, traj: Trajectory, hierarchy: HierarchicalData) -> HierarchicalData:
     """The initial-state sample of ``traj`` with the surrogate's contact edges (its ground truth unused)."""
-    data = direct_sample(traj, hierarchy)
-    del data["l0"].displacement  # the future is what is predicted, never read
-    return surrogate.contact(data)
+    return surrogate.contact(step_sample(traj, 1, hierarchy))  # the initial state; no future is read
 
 
 @torch.no_grad()

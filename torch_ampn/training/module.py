@@ -36,9 +36,8 @@ def _check_writable(folder: Path, name: str) -> None:
         raise PermissionError(f"{folder}: cannot write there ({name}): {err.strerror or err}") from None
 
 
-# The module's arguments that build its AMPNSurrogate (and, through it, the AMPN); the rest are
-# training, rollout and output options.
-SURROGATE_ARGUMENTS = (
+#: The module's arguments of the network's size and shape, for both surrogates.
+NETWORK_ARGUMENTS = (
     "num_components",
     "num_grippers",
     "hidden_channels",
@@ -50,6 +49,12 @@ SURROGATE_ARGUMENTS = (
     "post_layers",
     "up_layers",
     "aggr",
+)
+
+# The module's arguments that build its AMPNSurrogate (and, through it, the AMPN); the rest are
+# training, rollout and output options.
+SURROGATE_ARGUMENTS = (
+    *NETWORK_ARGUMENTS,
     "diffusion_steps",
     "contact_radius",
     "contact_k",
@@ -67,17 +72,7 @@ SURROGATE_ARGUMENTS = (
 
 #: The module's arguments that build a :class:`~torch_ampn.forming.direct.DirectSurrogate` (``mode: direct``).
 DIRECT_ARGUMENTS = (
-    "num_components",
-    "num_grippers",
-    "hidden_channels",
-    "mlp_channels",
-    "num_levels",
-    "pre_layers",
-    "down_layers",
-    "solve_layers",
-    "post_layers",
-    "up_layers",
-    "aggr",
+    *NETWORK_ARGUMENTS,
     "contact_radius",
     "contact_k",
     "contact_mode",
@@ -295,6 +290,8 @@ class AMPNLightningModule(L.LightningModule):
         self._loss = CompiledLoss(self.surrogate, enabled=compile_network and not self.direct)
         # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
         self._training_meshes: dict[str, int] | None = None
+        # id of the Trainer whose fit _prepare_fit has done (configure_model and setup both ask)
+        self._fit_prepared_for: int | None = None
 
     # ---- set-up --------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -306,33 +303,42 @@ class AMPNLightningModule(L.LightningModule):
             for name, folder in folders:
                 if folder:
                     _check_writable(Path(folder), name)
-        if datamodule is not None and hasattr(datamodule, "check_model"):
-            datamodule.check_model(self.surrogate)
         if stage == "fit":
-            self._fit_statistics_once(datamodule)
+            self._prepare_fit(datamodule)
+        elif datamodule is not None and hasattr(datamodule, "check_model"):
+            datamodule.check_model(self.surrogate)
 
     def configure_model(self) -> None:
-        """Before a fit: the normalisation statistics (and a direct model's mean base), once.
+        """Before a fit: :meth:`_prepare_fit` (the statistics, and a direct model's mean base).
 
         Weight-averaging callbacks copy the model in their own ``setup``, which runs before the
         module's and calls this hook first: so the copy holds the statistics too (a direct
         model's mean base is sized by the data). Outside ``fit`` it does nothing.
         """
-        if self._trainer is None or self.trainer.state.fn != "fit":
+        if self._trainer is not None and self.trainer.state.fn == "fit":
+            self._prepare_fit(getattr(self.trainer, "datamodule", None))
+
+    def teardown(self, stage: str) -> None:
+        """After a fit: the next fit prepares again."""
+        self._fit_prepared_for = None
+
+    def _prepare_fit(self, datamodule: Any) -> None:
+        """Once per fit: check the model against the data, note the meshes, fit the statistics.
+
+        The statistics come from ``datamodule``'s training samples, unless frozen (a resumed fit).
+        """
+        trainer = None if self._trainer is None else id(self.trainer)
+        if trainer is not None and trainer == self._fit_prepared_for:
             return
-        datamodule = getattr(self.trainer, "datamodule", None)
         if datamodule is not None and hasattr(datamodule, "check_model"):
             datamodule.check_model(self.surrogate)
-        self._fit_statistics_once(datamodule)
-
-    def _fit_statistics_once(self, datamodule: Any) -> None:
-        """The training meshes and, unless frozen (a resumed fit), the statistics from ``datamodule``."""
         if datamodule is not None and hasattr(datamodule, "mesh_keys"):
             self._training_meshes = datamodule.mesh_keys("train")
         if not self.surrogate.statistics_frozen:
             if datamodule is None or not hasattr(datamodule, "statistics_samples"):
                 raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
             self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
+        self._fit_prepared_for = trainer
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the random number generators' states, so that a resumed fit draws what it would have."""
