@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
@@ -72,6 +73,12 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
     # rollout_surrogate, the path of test/predict/design, takes the direct one
     (routed,) = rollout_surrogate(model, [trajs[0]], h, [None], batch_size=4)
     torch.testing.assert_close(routed, alone[0])
+    from torch_ampn.design import surrogate_predictor
+
+    finals = surrogate_predictor(model, h, batch_size=2, final=True)(trajs)  # the design search's path
+    for a, f in zip(alone, finals, strict=True):
+        assert f.shape == (1, *a.shape[1:])
+        torch.testing.assert_close(f[0], a[-1], atol=1e-5, rtol=1e-5)
 
 
 def test_it_learns_the_two_settings_apart(tiny_data):
@@ -229,6 +236,23 @@ def test_cli_fit_with_weight_averaging_test_predict_and_export_of_a_direct_model
         ]
     )
     assert (out / "reports" / "predict" / "wide.json").is_file()
+
+    from torch_ampn.cli.design import main as design
+    from torch_ampn.design import SettingsSpace, part_quality, settings_trajectories
+
+    budget = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "2", "--batch-size", "3"]
+    report = design([str(tiny_data), "--checkpoint", str(ckpt), "--measure", "draw_in_mean",
+                     "--out", str(tmp_path / "design"), *budget])  # fmt: skip
+    best = report["best"]  # searched on the formed part alone; judged here on the whole prediction
+    from torch_ampn.training import AMPNDataModule
+
+    cfg = AMPNDataModule(str(tiny_data), generate=False).simulator_config()
+    x = np.array([list(best["settings"].values())])  # [1, D]
+    (best_traj,) = settings_trajectories(cfg, SettingsSpace.from_config(cfg), x)
+    (whole,) = predict_direct(surrogate, [best_traj], _hierarchy(best_traj))
+    by_hand = part_quality(best_traj, whole[-1], names={"draw_in_mean": 1.0})["draw_in_mean"]
+    assert best["objective"] == pytest.approx(by_hand, rel=1e-4, abs=1e-6)
+    assert report["search"]["evaluations"] == 2 * 2 * 4 and (tmp_path / "design" / "top_1.xdmf").is_file()
 
     path = export([str(ckpt), str(tmp_path / "direct.pt")])
     loaded = DirectSurrogate.load(path)

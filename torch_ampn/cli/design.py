@@ -39,8 +39,14 @@ def _measure(values: list[str]) -> str | dict[str, float]:
     return out
 
 
-def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
-    """The predictor the arguments name for the process ``cfg``, and its description."""
+def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, Any, str]:
+    """The predictor the arguments name for the process ``cfg``: of the formed part, of whole rollouts.
+
+    Returns ``(final, whole, description)``: ``final`` gives the formed part alone, ``[1, N, 3]``
+    per setting, for the search, the map and the verification (a direct surrogate predicts that
+    one step; see :func:`~torch_ampn.design.predictors.surrogate_predictor`); ``whole`` gives
+    whole rollouts for the top-k XDMF files. A baseline's two are the same.
+    """
     import torch
 
     from torch_ampn.design.predictors import baseline_predictor, surrogate_predictor
@@ -55,7 +61,8 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
             raise FileNotFoundError(
                 f"{args.data_dir / 'train'}: --baseline needs at least 2 training trajectories"
             )
-        return baseline_predictor(fitted_prior(args.baseline, trajectories)), f"baseline {args.baseline}"
+        predict = baseline_predictor(fitted_prior(args.baseline, trajectories))
+        return predict, predict, f"baseline {args.baseline}"
     from torch_ampn.training import AMPNLightningModule
 
     if not args.checkpoint.is_file():
@@ -73,8 +80,14 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, str]:
 
     hierarchy = dm.hierarchies(process_trajectory(cfg, seed=0))  # the mesh every setting shares
     prior = dm.prior_baseline() if getattr(module.surrogate, "prior_features", False) else None
-    predict = surrogate_predictor(module.surrogate, hierarchy, prior, compile=not args.no_compile)
-    return predict, f"surrogate {args.checkpoint}"
+    final, whole = (
+        surrogate_predictor(
+            module.surrogate, hierarchy, prior, batch_size=args.batch_size, compile=not args.no_compile,
+            final=only_final,
+        )
+        for only_final in (True, False)
+    )  # fmt: skip
+    return final, whole, f"surrogate {args.checkpoint}"
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -98,6 +111,8 @@ def run(args: argparse.Namespace) -> dict:
     from torch_ampn.training import AMPNDataModule
     from torch_ampn.utils.io import atomic_write_text
 
+    if args.batch_size < 1:
+        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.runs < 1:
         raise ValueError(f"--runs must be >= 1, got {args.runs}")
     if args.runs > 1 and not args.verify:
@@ -115,7 +130,7 @@ def run(args: argparse.Namespace) -> dict:
     if len(axes) != 2 or -1 in axes or axes[0] == axes[1]:
         raise ValueError(f"--map needs two different names of {space.names}, got {args.map}")
     args.out.mkdir(parents=True, exist_ok=True)
-    predict, described = build_predictor(args, cfg)
+    predict, predict_whole, described = build_predictor(args, cfg)  # predict: the formed part alone
     objective = settings_objective(predict, cfg, measure, args.wrinkle_radius)
     start = time.perf_counter()
     result = search_settings(objective, space.bounds, args.maxiter, args.popsize, args.seed, progress=True)
@@ -127,7 +142,7 @@ def run(args: argparse.Namespace) -> dict:
         refine_seconds = time.perf_counter() - start
     top_x, top_values = result.top(args.top)
     top_trajs = settings_trajectories(cfg, space, top_x)
-    rollouts = predict(top_trajs)
+    rollouts = predict_whole(top_trajs)  # whole rollouts for the XDMF files
     top, best_final = [], rollouts[0][-1]
     for k, (x, value, traj, pos) in enumerate(zip(top_x, top_values, top_trajs, rollouts, strict=True)):
         path = export_xdmf(traj, args.out / f"top_{k + 1}.xdmf", pos)
@@ -227,6 +242,10 @@ def parser() -> argparse.ArgumentParser:
         "and judge it by the mean",
     )  # fmt: skip
     p.add_argument("--wrinkle-radius", type=float, default=None, help="mm (default: 3 ply edge lengths)")
+    p.add_argument(
+        "--batch-size", type=int, default=8,
+        help="settings per surrogate pass (a next-step surrogate compiles one graph per size)",
+    )  # fmt: skip
     p.add_argument("--no-compile", action="store_true", help="run the surrogate and the simulator eagerly")
     p.add_argument("--out", type=Path, default=Path("outputs/design"))
     return p

@@ -1,7 +1,9 @@
 """Predictors for design studies: the forming of a batch of process settings.
 
 Each returns a :data:`~torch_ampn.design.search.Predictor`: a function of setting trajectories
-(:func:`~torch_ampn.design.search.settings_trajectories`) to their rollouts ``[T + 1, N, 3]``.
+(:func:`~torch_ampn.design.search.settings_trajectories`) to their predicted positions
+``[S, N, 3]``, the formed part last: whole rollouts (``S = T + 1``), or the formed part alone
+(``S = 1``) from a surrogate predictor with ``final=True``, which is all a search needs.
 
 * :func:`surrogate_predictor`: a trained :class:`~torch_ampn.forming.AMPNSurrogate`, batched on the
   fast path where it applies, with its prior (a fitted baseline) where it has one.
@@ -78,20 +80,28 @@ def surrogate_predictor(
     compile: bool = True,
     device: torch.device | str | None = None,
     seed: int = 0,
+    final: bool = False,
 ) -> Predictor:
     """A trained surrogate rolled out over each setting (its noise seeded ``seed`` for every setting).
 
     Args:
-        surrogate: The :class:`~torch_ampn.forming.AMPNSurrogate`.
+        surrogate: The :class:`~torch_ampn.forming.AMPNSurrogate` or
+            :class:`~torch_ampn.forming.direct.DirectSurrogate`.
         hierarchy: Its mesh's hierarchy.
         prior: The fitted baseline a surrogate with ``prior_features`` reads
             (``AMPNDataModule.prior_baseline()``); required for such a surrogate.
-        batch_size: Settings per fast-path batch.
+        batch_size: Settings per fast-path batch (per network pass of a direct surrogate).
         compile: Compile the fast path.
         device: Where to run.
         seed: Seed of each rollout's noise generator.
+        final: Return the formed part alone, ``[1, N, 3]`` per setting. A
+            :class:`~torch_ampn.forming.direct.DirectSurrogate` then predicts that one step
+            (its decoder runs once instead of ``T`` times); a next-step surrogate still rolls
+            out every step and keeps the last.
     """
+    from torch_ampn.forming.direct import DirectSurrogate
     from torch_ampn.rollout import rollout_surrogate
+    from torch_ampn.rollout.direct import predict_direct
 
     needs_prior = bool(getattr(surrogate, "prior_features", False))
     if needs_prior and prior is None:
@@ -102,14 +112,18 @@ def surrogate_predictor(
         if needs_prior:
             priors = baseline_predictor(prior)(trajs)  # on shallow copies: the caller's stay as they are
             trajs = [dataclasses.replace(t, prior=p) for t, p in zip(trajs, priors, strict=True)]
+        if final and isinstance(surrogate, DirectSurrogate):
+            finals = predict_direct(surrogate, trajs, hierarchy, batch_size, device=device, final=True)
+            return [pos[None] for pos in finals]  # [1, N, 3] each
         dev = device or "cpu"
         gens = [torch.Generator(device=dev).manual_seed(seed) for _ in trajs]
         with warnings.catch_warnings():  # a surrogate without a fast path: the plain one, quietly
             warnings.filterwarnings("ignore", message="no fast rollout")
-            return rollout_surrogate(
+            rollouts = rollout_surrogate(
                 surrogate, trajs, hierarchy, gens, batch_size=min(batch_size, len(trajs)), compile=compile,
                 device=device,
             )  # fmt: skip
+        return [pos[-1:] for pos in rollouts] if final else rollouts
 
     return predict
 

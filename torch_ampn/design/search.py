@@ -22,7 +22,8 @@ from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.design.measures import MEASURES, WrinkleOperator, part_quality
 from torch_ampn.sim.config import StampFormingConfig
 
-#: The rollout ``[T + 1, N, 3]`` (positions of every saved state) of each given setting trajectory.
+#: Predicted positions ``[S, N, 3]`` of each given setting trajectory, the formed part last: the
+#: whole rollout (``S = T + 1``) or the formed part alone (``S = 1``). Searches read ``[-1]`` only.
 Predictor = Callable[[Sequence[Trajectory]], list[Tensor]]
 
 
@@ -101,7 +102,7 @@ def settings_objective(
     """The batched objective ``x [M, 2G] -> [M]``: a measure (or weighted sum) of the predicted part.
 
     Args:
-        predict: The predictor (a rollout per setting trajectory; its last state is judged).
+        predict: The predictor (positions per setting trajectory; the last state is judged).
         cfg: The process (mesh, tools, ranges).
         measure: A name of :data:`~torch_ampn.design.measures.MEASURES`, or ``{name: weight}``.
         wrinkle_radius: See :func:`~torch_ampn.design.measures.wrinkle_field`.
