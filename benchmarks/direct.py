@@ -8,10 +8,11 @@ variant's network, ``--steps`` optimiser steps) on the first ``n`` training traj
 dataset (a folder of links per size) and its whole test split, so the test report's
 setting-aware baselines (mean trajectory, nearest setting, linear, POD + GP) are fitted on the
 same ``n`` trajectories. ``direct_flat`` is the one-level network with the width that gives it
-the AMPN's parameter count (within 3 %). Runs already done (``<out>/runs/<variant>_n<n>_s<seed>.json``)
-are kept, so a stopped benchmark resumes. Writes ``<out>/table.json`` (per variant and size: the
-RMSE's mean and std over seeds, the seeds, R^2 of the setting effect, seconds per prediction,
-the baselines) and prints the table.
+the AMPN's parameter count (within 3 %). Runs already done
+(``<out>/runs/<variant>_n<n>_s<seed>_t<steps>.json``) are kept, so a stopped benchmark resumes.
+Writes ``<out>/table.json`` (per variant, size and step count: the RMSE's mean and std over
+seeds, the seeds, R^2 of the setting effect, seconds per prediction, the baselines) and prints
+the table.
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def run(data_dir: Path, variant: str, seed: int, steps: int, work: Path) -> dict
 
     config = yaml.safe_load(CONFIG.read_text())
     model = variant_model(variant, config["model"])
-    out = work / f"{variant}_{data_dir.name}_s{seed}"
+    out = work / f"{variant}_{data_dir.name}_s{seed}_t{steps}"
     config["seed_everything"] = seed
     config["trainer"].update(
         max_steps=steps, val_check_interval=max(steps // 4, 1), default_root_dir=str(out),
@@ -124,16 +125,17 @@ def run(data_dir: Path, variant: str, seed: int, steps: int, work: Path) -> dict
 
 
 def table(records: list[dict]) -> list[dict]:
-    """Per (variant, train size): mean and std over seeds."""
-    groups: dict[tuple[str, int], list[dict]] = {}
+    """Per (variant, train size, steps): mean and std over seeds."""
+    groups: dict[tuple[str, int, int], list[dict]] = {}
     for r in records:
-        groups.setdefault((r["variant"], r["train"]), []).append(r)
+        groups.setdefault((r["variant"], r["train"], r["steps"]), []).append(r)
     rows = []
-    for (variant, n), rs in sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+    for (variant, n, steps), rs in sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][0])):
         rmse = [r["rmse_mm"] for r in rs]
         rows.append({
             "variant": variant,
             "train": n,
+            "steps": steps,
             "seeds": [r["seed"] for r in rs],
             "rmse_mm_mean": statistics.fmean(rmse),
             "rmse_mm_std": statistics.pstdev(rmse),
@@ -163,7 +165,7 @@ def main() -> None:
         data = subset(args.data_dir, n, args.work / "data")
         for variant in args.variants:
             for seed in args.seeds:
-                done = args.out / "runs" / f"{variant}_n{n}_s{seed}.json"
+                done = args.out / "runs" / f"{variant}_n{n}_s{seed}_t{args.steps}.json"
                 if done.exists():
                     continue
                 record = run(data, variant, seed, args.steps, args.work)
@@ -178,12 +180,13 @@ def main() -> None:
         "rows": rows,
     }
     atomic_write_text(args.out / "table.json", json.dumps(result, indent=2))
-    head = f"{'variant':<14}{'train':>6}{'seeds':>7}{'RMSE mm':>10}{'std':>8}{'R2':>7}{'s/pred':>8}"
+    head = f"{'variant':<14}{'train':>6}{'steps':>7}{'seeds':>7}{'RMSE mm':>10}{'std':>8}{'R2':>7}"
+    head += f"{'s/pred':>8}"
     print(f"{head}  baselines (mm)")
     for r in rows:
         base = " ".join(f"{k}={v:.3f}" for k, v in r["baselines_rmse_mm"].items())
         print(
-            f"{r['variant']:<14}{r['train']:>6}{len(r['seeds']):>7}{r['rmse_mm_mean']:>10.4f}"
+            f"{r['variant']:<14}{r['train']:>6}{r['steps']:>7}{len(r['seeds']):>7}{r['rmse_mm_mean']:>10.4f}"
             f"{r['rmse_mm_std']:>8.4f}{r['setting_effect_r2_mean']:>7.3f}"
             f"{r['seconds_per_prediction']:>8.3f}  {base}"
         )
