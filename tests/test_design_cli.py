@@ -63,6 +63,7 @@ def test_bad_input_ends_in_one_line(tiny_data, tmp_path, monkeypatch, capsys):
         (["--baseline", "pod_gp", "--map", "force_0", "force_0"], "--map needs two different names"),
         (["--baseline", "pod_gp", "--verify", "4", "--runs", "0"], "--runs must be >= 1"),
         (["--baseline", "pod_gp", "--runs", "3"], "--runs 3 needs --verify N"),
+        (["--baseline", "pod_gp", "--batch-size", "0"], "--batch-size must be >= 1"),
     ]:
         monkeypatch.setattr(
             sys, "argv", ["torch-ampn", "design", str(tiny_data), "--out", str(tmp_path), *args]
