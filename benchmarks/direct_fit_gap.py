@@ -21,6 +21,7 @@ import json
 import os
 import statistics
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -51,6 +52,7 @@ def main() -> None:
     train_set = TrajectoryDataset(args.data_dir, "train", max_cached_mb=0)
     test = list(TrajectoryDataset(args.data_dir, "test", max_cached_mb=0))
     rows = []
+    pod_gp_of: dict[int, Any] = {}  # training-set size -> POD + GP fitted on it (runs may share one)
     for n_text, ckpt in args.run:
         n = int(n_text)
         if not 1 <= n <= len(train_set):
@@ -60,7 +62,9 @@ def main() -> None:
         hierarchy = dm.hierarchies(test[0])
         train = [train_set[i] for i in range(n)]
         seen = train[:: max(n // args.sample, 1)][: args.sample]
-        pod_gp = fitted_prior("pod_gp", train)
+        if n not in pod_gp_of:
+            pod_gp_of[n] = fitted_prior("pod_gp", train)
+        pod_gp = pod_gp_of[n]
         row = {"train": n, "checkpoint": ckpt, "sample": len(seen), "test": len(test)}
         for split, trajs in (("train", seen), ("test", test)):
             predicted = predict_direct(module.surrogate, trajs, hierarchy)

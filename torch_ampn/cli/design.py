@@ -80,14 +80,14 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, Any, str]:
 
     hierarchy = dm.hierarchies(process_trajectory(cfg, seed=0))  # the mesh every setting shares
     prior = dm.prior_baseline() if getattr(module.surrogate, "prior_features", False) else None
-    final, whole = (
-        surrogate_predictor(
+
+    def predictor(final: bool) -> Any:
+        return surrogate_predictor(
             module.surrogate, hierarchy, prior, batch_size=args.batch_size, compile=not args.no_compile,
-            final=only_final,
-        )
-        for only_final in (True, False)
-    )  # fmt: skip
-    return final, whole, f"surrogate {args.checkpoint}"
+            final=final,
+        )  # fmt: skip
+
+    return predictor(True), predictor(False), f"surrogate {args.checkpoint}"
 
 
 def run(args: argparse.Namespace) -> dict:
