@@ -7,8 +7,9 @@ Every run is ``torch-ampn fit`` then ``torch-ampn test`` of ``examples/configs/d
 variant's network, ``--steps`` optimiser steps) on the first ``n`` training trajectories of the
 dataset (a folder of links per size) and its whole test split, so the test report's
 setting-aware baselines (mean trajectory, nearest setting, linear, POD + GP) are fitted on the
-same ``n`` trajectories. ``direct_flat`` is the one-level network with the width that gives it
-the AMPN's parameter count (within 3 %). Runs already done
+same ``n`` trajectories. ``--set key=value`` changes the config's ``model`` settings for every
+variant and ``--tag`` names such a run (``<variant>-<tag>``). ``direct_flat`` is the one-level
+network with the width that gives it the AMPN's parameter count (within 3 %). Runs already done
 (``<out>/runs/<variant>_n<n>_s<seed>_t<steps>.json``) are kept, so a stopped benchmark resumes.
 Writes ``<out>/table.json`` (per variant, size and step count: the RMSE's mean and std over
 seeds, the seeds, R^2 of the setting effect, seconds per prediction, the baselines) and prints
@@ -77,13 +78,22 @@ def variant_model(name: str, base: dict) -> dict:
     return best[1]
 
 
-def run(data_dir: Path, variant: str, seed: int, steps: int, work: Path) -> dict:
-    """Fit and test one run; returns its record."""
+def run(
+    data_dir: Path,
+    variant: str,
+    seed: int,
+    steps: int,
+    work: Path,
+    changes: dict | None = None,
+    tag: str = "",
+) -> dict:
+    """Fit and test one run (``changes``: ``model`` settings over the config's); returns its record."""
     from torch_ampn.cli.train import main
 
     config = yaml.safe_load(CONFIG.read_text())
-    model = variant_model(variant, config["model"])
-    out = work / f"{variant}_{data_dir.name}_s{seed}_t{steps}"
+    model = variant_model(variant, {**config["model"], **(changes or {})})
+    name = f"{variant}-{tag}" if tag else variant
+    out = work / f"{name}_{data_dir.name}_s{seed}_t{steps}"
     config["seed_everything"] = seed
     config["trainer"].update(
         max_steps=steps, val_check_interval=max(steps // 4, 1), default_root_dir=str(out),
@@ -106,7 +116,8 @@ def run(data_dir: Path, variant: str, seed: int, steps: int, work: Path) -> dict
     with open(out / "report" / "test_rmse.csv") as f:
         rows = list(csv.DictReader(f))
     return {
-        "variant": variant,
+        "variant": name,
+        "changes": changes or {},
         "train": len(list((data_dir / "train").glob("*.pt"))),
         "test": len(rows),
         "seed": seed,
@@ -157,18 +168,31 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", type=int, default=[400])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument(
+        "--set", nargs="*", default=[], metavar="KEY=VALUE", help="model settings over the config's (YAML)"
+    )
+    parser.add_argument("--tag", default="", help="name of the changed runs (required with --set)")
     parser.add_argument("--work", type=Path, default=Path("outputs/direct_runs"))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/direct"))
     args = parser.parse_args()
+    changes = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--set {item}: expected KEY=VALUE")
+        changes[key] = yaml.safe_load(value)
+    if changes and not args.tag:
+        parser.error("--set needs --tag (the runs' name)")
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     for n in args.sizes:
         data = subset(args.data_dir, n, args.work / "data")
         for variant in args.variants:
             for seed in args.seeds:
-                done = args.out / "runs" / f"{variant}_n{n}_s{seed}_t{args.steps}.json"
+                name = f"{variant}-{args.tag}" if args.tag else variant
+                done = args.out / "runs" / f"{name}_n{n}_s{seed}_t{args.steps}.json"
                 if done.exists():
                     continue
-                record = run(data, variant, seed, args.steps, args.work)
+                record = run(data, variant, seed, args.steps, args.work, changes, args.tag)
                 record["date"] = datetime.date.today().isoformat()
                 record["data"] = str(args.data_dir)
                 atomic_write_text(done, json.dumps(record, indent=2))
@@ -180,13 +204,13 @@ def main() -> None:
         "rows": rows,
     }
     atomic_write_text(args.out / "table.json", json.dumps(result, indent=2))
-    head = f"{'variant':<14}{'train':>6}{'steps':>7}{'seeds':>7}{'RMSE mm':>10}{'std':>8}{'R2':>7}"
+    head = f"{'variant':<24}{'train':>6}{'steps':>7}{'seeds':>7}{'RMSE mm':>10}{'std':>8}{'R2':>7}"
     head += f"{'s/pred':>8}"
     print(f"{head}  baselines (mm)")
     for r in rows:
         base = " ".join(f"{k}={v:.3f}" for k, v in r["baselines_rmse_mm"].items())
         print(
-            f"{r['variant']:<14}{r['train']:>6}{r['steps']:>7}{len(r['seeds']):>7}{r['rmse_mm_mean']:>10.4f}"
+            f"{r['variant']:<24}{r['train']:>6}{r['steps']:>7}{len(r['seeds']):>7}{r['rmse_mm_mean']:>10.4f}"
             f"{r['rmse_mm_std']:>8.4f}{r['setting_effect_r2_mean']:>7.3f}"
             f"{r['seconds_per_prediction']:>8.3f}  {base}"
         )
