@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torch_ampn.data import DirectDataset, HierarchyCache, TrajectoryDataset
-from torch_ampn.forming.direct import DirectSurrogate, TimeEncoding
+from torch_ampn.forming.direct import DirectSurrogate, ModeDecoder, TimeEncoding
 from torch_ampn.rollout.direct import predict_direct
 from torch_ampn.rollout.surrogate import rollout_surrogate
 
@@ -79,6 +79,48 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
     for a, f in zip(alone, finals, strict=True):
         assert f.shape == (1, *a.shape[1:])
         torch.testing.assert_close(f[0], a[-1], atol=1e-5, rtol=1e-5)
+
+
+def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample():
+    """Against a float64 loop over nodes, steps and modes, with two samples in one batch."""
+    torch.manual_seed(0)
+    dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8).double()
+    torch.nn.init.normal_(dec.branch[-1].weight)  # it starts at zero
+    h, settings = torch.randn(6, 5, dtype=torch.float64), torch.randn(2, 4, dtype=torch.float64)
+    t, batch = torch.tensor([0.25, 1.0], dtype=torch.float64), torch.tensor([0, 0, 0, 1, 1, 1])
+    out = dec(h, settings, t, batch)  # [6, 2, 3]
+    norm = torch.nn.functional.layer_norm(h, (5,), dec.norm.weight, dec.norm.bias)
+    for i in range(6):
+        phi = (dec.trunk.weight @ norm[i] + dec.trunk.bias).reshape(3, 3)  # [K, 3]
+        for j in range(2):
+            gamma = torch.cat(
+                [t[j : j + 1], (dec.time.frequencies * t[j]).sin(), (dec.time.frequencies * t[j]).cos()]
+            )
+            hidden = dec.branch_settings(settings[batch[i]]) + dec.branch_time.weight @ gamma
+            coef = dec.branch(hidden)  # [K]
+            torch.testing.assert_close(out[i, j], (coef[:, None] * phi).sum(0))
+    torch.testing.assert_close(dec(h[3:], settings[1:], t), out[3:])  # one sample, no batch vector
+
+
+def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(tiny_data):
+    without, _ = _fitted(tiny_data)
+    model, train = _fitted(tiny_data, decoder_modes=4)  # same seed: the same network before the modes
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    h = _hierarchy(traj)
+    torch.testing.assert_close(
+        predict_direct(model.eval(), [traj], h)[0], predict_direct(without.eval(), [traj], h)[0]
+    )
+    torch.nn.init.normal_(model.modes.branch[-1].weight)
+    trajs = [traj, *train.trajectories]
+    alone = [predict_direct(model, [t], h)[0] for t in trajs]
+    for a, b in zip(alone, predict_direct(model, trajs, h, batch_size=2), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    assert (alone[0] - predict_direct(without, [traj], h)[0]).abs().max() > 1e-3  # the modes now count
+    from torch_geometric.data import Batch
+
+    loss = model.loss(Batch.from_data_list([train[0], train[1]]))  # the masked, batched path
+    loss.backward()
+    assert model.modes.trunk.weight.grad.abs().sum() > 0
 
 
 def test_it_learns_the_two_settings_apart(tiny_data):

@@ -112,6 +112,59 @@ class TimeDecoder(nn.Module):
         return self.rest(node[:, None, :] + time[None, :, :])  # [N, S, out]
 
 
+class ModeDecoder(nn.Module):
+    r"""``K`` learned modes with coefficients of the settings and time: ``[N, d], [B, c], [S] -> [N, S, 3]``.
+
+    :math:`\mathbf{u}_i(t) = \sum_k b_k(\mathbf{s}, \gamma(t))\, \boldsymbol{\phi}_{ik}`: the trunk
+    :math:`\boldsymbol{\phi}_{ik} \in \mathbb{R}^3` is a linear map of node :math:`i`'s (normalised)
+    latent code, the branch :math:`b_k` an MLP of its sample's settings :math:`\mathbf{s}` and the
+    time, as in a DeepONet. POD + GP has this form with fixed modes; here the modes are learned
+    with the rest and the product lets a global setting scale a local shape directly.
+
+    Args:
+        latent_channels: ``d``.
+        settings_channels: ``c`` (0: the coefficients depend on time alone).
+        modes: ``K``.
+        hidden_channels: Width of the branch MLP (two hidden layers, SiLU).
+        time_frequencies: ``F`` of :class:`TimeEncoding`.
+    """
+
+    def __init__(
+        self,
+        latent_channels: int,
+        settings_channels: int,
+        modes: int,
+        hidden_channels: int = 128,
+        time_frequencies: int = 5,
+    ) -> None:
+        super().__init__()
+        if modes < 1:
+            raise ValueError(f"decoder_modes must be >= 1, got {modes}")
+        self.modes = modes
+        self.time = TimeEncoding(time_frequencies)
+        self.norm = nn.LayerNorm(latent_channels)
+        self.trunk = nn.Linear(latent_channels, 3 * modes)
+        self.branch_settings = nn.Linear(max(settings_channels, 1), hidden_channels)
+        self.branch_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
+        self.branch = nn.Sequential(
+            nn.SiLU(),
+            nn.Linear(hidden_channels, hidden_channels),
+            nn.SiLU(),
+            nn.Linear(hidden_channels, modes),
+        )
+        # the modes start at zero: added to another decoder, this one first changes nothing
+        nn.init.zeros_(self.branch[-1].weight)
+        nn.init.zeros_(self.branch[-1].bias)
+
+    def forward(self, h: Tensor, settings: Tensor, t: Tensor, batch: Tensor | None = None) -> Tensor:
+        """``h [N, d]``, ``settings [B, c]``, ``t [S]``, ``batch [N]`` (or ``None``) -> ``[N, S, 3]``."""
+        phi = self.trunk(self.norm(h)).unflatten(-1, (self.modes, 3))  # [N, K, 3]
+        time = self.branch_time(self.time(t.to(h.device)))  # [S, m]
+        coef = self.branch(self.branch_settings(settings.to(h.dtype))[:, None, :] + time[None])  # [B, S, K]
+        coef = coef[batch] if batch is not None else coef.expand(h.size(0), -1, -1)  # [N, S, K]
+        return torch.einsum("nsk,nkc->nsc", coef, phi)
+
+
 class DirectSurrogate(ModelFile, nn.Module):
     r"""Predictor of a whole forming trajectory from the initial state and the process settings.
 
@@ -140,6 +193,8 @@ class DirectSurrogate(ModelFile, nn.Module):
             gripper features: a global code of the process settings.
         position_frequencies: Fourier features of the initial position read by the decoder
             (frequencies per axis; 0: none).
+        decoder_modes: Modes of a :class:`ModeDecoder` whose output is added to the time
+            decoder's (0: none).
         **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN` (``hidden_channels``,
             ``mlp_channels``, the stacks' layer counts, ``aggr``); its output is the latent code,
             ``hidden_channels`` wide.
@@ -161,6 +216,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         loss_steps: int | None = None,
         settings_input: bool = True,
         position_frequencies: int = 4,
+        decoder_modes: int = 0,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -196,6 +252,11 @@ class DirectSurrogate(ModelFile, nn.Module):
         cond = code + 6 * self.position_frequencies
         self.decoder = TimeDecoder(
             latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers, cond
+        )
+        self.modes = (
+            ModeDecoder(latent, code, decoder_modes, int(network.get("mlp_channels", 128)), time_frequencies)
+            if decoder_modes
+            else None
         )
         self.node_norm = nn.ModuleDict(
             {"fine": Normalizer(sizes["fine_in_channels"]), "coarse": Normalizer(num_coarse_node_features())}
@@ -349,6 +410,25 @@ class DirectSurrogate(ModelFile, nn.Module):
             batch_dict = {level_name(k): data[level_name(k)].batch for k in range(self.num_levels)}
         return self.model(x_dict, index_dict, e_dict, batch_dict=batch_dict)
 
+    def _decode(self, data: HierarchicalData, h: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
+        """The normalised departure of the (``mask``-ed) ``l0`` nodes at times ``t [S]``, ``[N, S, 3]``."""
+        cond = self._condition(data)
+        if mask is not None:
+            h, cond = h[mask], None if cond is None else cond[mask]
+        out = self.decoder(h, t, cond)
+        if self.modes is not None:
+            fine = data["l0"]
+            batch = fine.batch if "batch" in fine else None
+            settings = (
+                self.settings_norm(self._settings(data))
+                if self.settings_input
+                else torch.zeros(int(data.gripper_pos.size(0)), 1, device=h.device)
+            )  # [B, c]
+            if mask is not None and batch is not None:
+                batch = batch[mask]
+            out = out + self.modes(h, settings, t, batch)
+        return out
+
     def _base(self, data: HierarchicalData, steps: Tensor) -> Tensor | None:
         """The mean training displacement at ``steps`` (1-based) of every ``l0`` node ``[N_0, S, 3]``."""
         if self.base != "mean":
@@ -384,8 +464,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         self._check_steps(num_steps)
         device = data["l0"].pos.device
         steps = torch.arange(1, num_steps + 1, device=device) if steps is None else steps.to(device)
-        out = self.decoder(self.latent(data), steps / num_steps, self._condition(data))
-        out = self.target_norm.denormalize(out)
+        out = self.target_norm.denormalize(self._decode(data, self.latent(data), steps / num_steps))
         base = self._base(data, steps)
         return out if base is None else out + base
 
@@ -403,9 +482,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         base = self._base(data, steps)
         if base is not None:
             target = target - base[ply]
-        cond = self._condition(data)
-        cond = None if cond is None else cond[ply]
-        out = self.decoder(self.latent(data)[ply], steps / num_steps, cond)  # [N_ply, S, 3]: tools prescribed
+        out = self._decode(data, self.latent(data), steps / num_steps, ply)  # [N_ply, S, 3]: tools prescribed
         return (out - self.target_norm(target)).square().mean()
 
     def extra_repr(self) -> str:

@@ -83,6 +83,7 @@ DIRECT_ARGUMENTS = (
     "loss_steps",
     "settings_input",
     "position_frequencies",
+    "decoder_modes",
 )
 
 #: Next-step settings a direct model has no use for, with the values that mean "off".
@@ -170,6 +171,8 @@ class AMPNLightningModule(L.LightningModule):
             input of every fine node and of the decoder.
         position_frequencies: Direct mode: Fourier features of the initial position read by the
             decoder (frequencies per axis; 0: none).
+        decoder_modes: Direct mode: learned modes with coefficients of the settings and time,
+            added to the time decoder (:class:`~torch_ampn.forming.direct.ModeDecoder`; 0: none).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -263,6 +266,7 @@ class AMPNLightningModule(L.LightningModule):
         loss_steps: int | None = None,
         settings_input: bool = True,
         position_frequencies: int = 4,
+        decoder_modes: int = 0,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
