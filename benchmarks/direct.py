@@ -55,6 +55,16 @@ def subset(data_dir: Path, n: int, root: Path) -> Path:
     return out
 
 
+def number(value: object) -> object:
+    """A YAML value, with a string such as ``3e-3`` (a string to YAML 1.1) read as a float."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
 def parameters(model: dict) -> int:
     """Parameters of the direct model of these ``model`` settings."""
     from torch_ampn.cli.train import MODULE_DEFAULTS
@@ -180,7 +190,7 @@ def main() -> None:
         key, sep, value = item.partition("=")
         if not sep:
             parser.error(f"--set {item}: expected KEY=VALUE")
-        changes[key] = yaml.safe_load(value)
+        changes[key] = number(yaml.safe_load(value))
     if changes and not args.tag:
         parser.error("--set needs --tag (the runs' name)")
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
