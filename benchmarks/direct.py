@@ -88,6 +88,11 @@ def variant_model(name: str, base: dict) -> dict:
     return best[1]
 
 
+def run_name(variant: str, tag: str) -> str:
+    """A run's variant name: ``<variant>-<tag>``, or the variant for the config as it is."""
+    return f"{variant}-{tag}" if tag else variant
+
+
 def run(
     data_dir: Path,
     variant: str,
@@ -102,7 +107,7 @@ def run(
 
     config = yaml.safe_load(CONFIG.read_text())
     model = variant_model(variant, {**config["model"], **(changes or {})})
-    name = f"{variant}-{tag}" if tag else variant
+    name = run_name(variant, tag)
     out = work / f"{name}_{data_dir.name}_s{seed}_t{steps}"
     config["seed_everything"] = seed
     config["trainer"].update(
@@ -198,8 +203,7 @@ def main() -> None:
         data = subset(args.data_dir, n, args.work / "data")
         for variant in args.variants:
             for seed in args.seeds:
-                name = f"{variant}-{args.tag}" if args.tag else variant
-                done = args.out / "runs" / f"{name}_n{n}_s{seed}_t{args.steps}.json"
+                done = args.out / "runs" / f"{run_name(variant, args.tag)}_n{n}_s{seed}_t{args.steps}.json"
                 if done.exists():
                     continue
                 record = run(data, variant, seed, args.steps, args.work, changes, args.tag)

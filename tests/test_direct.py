@@ -85,7 +85,7 @@ def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample():
     """Against a float64 loop over nodes, steps and modes, with two samples in one batch."""
     torch.manual_seed(0)
     dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8).double()
-    torch.nn.init.normal_(dec.branch[-1].weight)  # it starts at zero
+    torch.nn.init.normal_(dec.branch.rest[-1].weight)  # it starts at zero
     h, settings = torch.randn(6, 5, dtype=torch.float64), torch.randn(2, 4, dtype=torch.float64)
     t, batch = torch.tensor([0.25, 1.0], dtype=torch.float64), torch.tensor([0, 0, 0, 1, 1, 1])
     out = dec(h, settings, t, batch)  # [6, 2, 3]
@@ -93,11 +93,10 @@ def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample():
     for i in range(6):
         phi = (dec.trunk.weight @ norm[i] + dec.trunk.bias).reshape(3, 3)  # [K, 3]
         for j in range(2):
-            gamma = torch.cat(
-                [t[j : j + 1], (dec.time.frequencies * t[j]).sin(), (dec.time.frequencies * t[j]).cos()]
-            )
-            hidden = dec.branch_settings(settings[batch[i]]) + dec.branch_time.weight @ gamma
-            coef = dec.branch(hidden)  # [K]
+            freq = dec.branch.time.frequencies
+            gamma = torch.cat([t[j : j + 1], (freq * t[j]).sin(), (freq * t[j]).cos()])
+            hidden = dec.branch.lin_node(settings[batch[i]]) + dec.branch.lin_time.weight @ gamma
+            coef = dec.branch.rest(hidden)  # [K]
             torch.testing.assert_close(out[i, j], (coef[:, None] * phi).sum(0))
     torch.testing.assert_close(dec(h[3:], settings[1:], t), out[3:])  # one sample, no batch vector
 
@@ -110,7 +109,7 @@ def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(t
     torch.testing.assert_close(
         predict_direct(model.eval(), [traj], h)[0], predict_direct(without.eval(), [traj], h)[0]
     )
-    torch.nn.init.normal_(model.modes.branch[-1].weight)
+    torch.nn.init.normal_(model.modes.branch.rest[-1].weight)
     trajs = [traj, *train.trajectories]
     alone = [predict_direct(model, [t], h)[0] for t in trajs]
     for a, b in zip(alone, predict_direct(model, trajs, h, batch_size=2), strict=True):

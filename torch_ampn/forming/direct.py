@@ -81,6 +81,7 @@ class TimeDecoder(nn.Module):
         time_frequencies: ``F`` of :class:`TimeEncoding`.
         layers: Linear maps (at least 2).
         cond_channels: Columns of a per-node condition read with the latent code (e.g. the settings).
+        normalize: Layer-normalise the latent code first.
     """
 
     def __init__(
@@ -91,12 +92,13 @@ class TimeDecoder(nn.Module):
         time_frequencies: int = 5,
         layers: int = 3,
         cond_channels: int = 0,
+        normalize: bool = True,
     ) -> None:
         super().__init__()
         if layers < 2:
             raise ValueError(f"decoder_layers must be >= 2, got {layers}")
         self.time = TimeEncoding(time_frequencies)
-        self.norm = nn.LayerNorm(latent_channels)
+        self.norm = nn.LayerNorm(latent_channels) if normalize else nn.Identity()
         self.lin_node = nn.Linear(latent_channels + cond_channels, hidden_channels)
         self.lin_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
         rest: list[nn.Module] = []
@@ -141,26 +143,20 @@ class ModeDecoder(nn.Module):
         if modes < 1:
             raise ValueError(f"decoder_modes must be >= 1, got {modes}")
         self.modes = modes
-        self.time = TimeEncoding(time_frequencies)
         self.norm = nn.LayerNorm(latent_channels)
         self.trunk = nn.Linear(latent_channels, 3 * modes)
-        self.branch_settings = nn.Linear(max(settings_channels, 1), hidden_channels)
-        self.branch_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
-        self.branch = nn.Sequential(
-            nn.SiLU(),
-            nn.Linear(hidden_channels, hidden_channels),
-            nn.SiLU(),
-            nn.Linear(hidden_channels, modes),
+        # the coefficients: a time decoder of the settings, [B, c], [S] -> [B, S, K]
+        self.branch = TimeDecoder(
+            max(settings_channels, 1), hidden_channels, modes, time_frequencies, layers=3, normalize=False
         )
         # the modes start at zero: added to another decoder, this one first changes nothing
-        nn.init.zeros_(self.branch[-1].weight)
-        nn.init.zeros_(self.branch[-1].bias)
+        nn.init.zeros_(self.branch.rest[-1].weight)
+        nn.init.zeros_(self.branch.rest[-1].bias)
 
     def forward(self, h: Tensor, settings: Tensor, t: Tensor, batch: Tensor | None = None) -> Tensor:
         """``h [N, d]``, ``settings [B, c]``, ``t [S]``, ``batch [N]`` (or ``None``) -> ``[N, S, 3]``."""
         phi = self.trunk(self.norm(h)).unflatten(-1, (self.modes, 3))  # [N, K, 3]
-        time = self.branch_time(self.time(t.to(h.device)))  # [S, m]
-        coef = self.branch(self.branch_settings(settings.to(h.dtype))[:, None, :] + time[None])  # [B, S, K]
+        coef = self.branch(settings.to(h.dtype), t)  # [B, S, K]
         coef = coef[batch] if batch is not None else coef.expand(h.size(0), -1, -1)  # [N, S, K]
         return torch.einsum("nsk,nkc->nsc", coef, phi)
 
