@@ -173,6 +173,40 @@ def test_a_model_file_round_trip_and_a_file_of_the_other_kind_is_refused(tiny_da
         AMPNSurrogate.load(path)
 
 
+def test_the_mean_base_as_an_input_is_the_float64_mean_at_the_chosen_steps(tiny_data, tmp_path):
+    """``base_input``: the nodes read the standardised mean at k steps, the decoder at the asked times."""
+    model, train = _fitted(tiny_data, base_input=2)
+    disp = torch.stack([t.pos[1:].double() - t.pos[0].double() for t in train.trajectories])  # [K, T, N, 3]
+    mean = disp.mean(0)  # [T, N, 3]
+    steps = disp.size(1)
+    assert model._base_input_steps().tolist() == [round(steps / 2), steps]
+    picked = mean[[round(steps / 2) - 1, steps - 1]].transpose(0, 1).flatten(1)  # [N, 6]
+    nodes_ref = (picked - picked.mean(0)) / picked.std(0, correction=0)
+    flat = mean.reshape(-1, 3)
+    point_ref = (mean.transpose(0, 1) - flat.mean(0)) / flat.std(0, correction=0)  # [N, T, 3]
+    seen = {}
+    model.model.register_forward_pre_hook(lambda m, args: seen.update(nodes=args[0]["l0"][:, -6:]))
+    model.decoder.lin_point.register_forward_pre_hook(lambda m, args: seen.update(point=args[0]))
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    h = _hierarchy(traj)
+    (alone,) = predict_direct(model.eval(), [traj], h)
+    torch.testing.assert_close(seen["nodes"].double(), nodes_ref, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(seen["point"].double(), point_ref, atol=1e-4, rtol=1e-4)
+    without, _ = _fitted(tiny_data)
+    assert (alone - predict_direct(without.eval(), [traj], h)[0]).abs().max() > 1e-3  # it is read
+    trajs = [traj, *train.trajectories]
+    for a, b in zip(
+        [predict_direct(model, [t], h)[0] for t in trajs],
+        predict_direct(model, trajs, h, batch_size=2),
+        strict=True,
+    ):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    loaded = DirectSurrogate.load(model.save(tmp_path / "direct.pt", {}))
+    torch.testing.assert_close(predict_direct(loaded, [traj], h)[0], alone)
+    with pytest.raises(ValueError, match="base_input must be 0, or >= 1 with base='mean'"):
+        DirectSurrogate(base="initial", base_input=2)
+
+
 def test_one_line_errors():
     with pytest.raises(ValueError, match="base must be one of"):
         DirectSurrogate(base="median")

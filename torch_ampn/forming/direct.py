@@ -82,6 +82,7 @@ class TimeDecoder(nn.Module):
         layers: Linear maps (at least 2).
         cond_channels: Columns of a per-node condition read with the latent code (e.g. the settings).
         normalize: Layer-normalise the latent code first.
+        point_channels: Columns of a per-node, per-time input (e.g. the mean displacement at that time).
     """
 
     def __init__(
@@ -93,6 +94,7 @@ class TimeDecoder(nn.Module):
         layers: int = 3,
         cond_channels: int = 0,
         normalize: bool = True,
+        point_channels: int = 0,
     ) -> None:
         super().__init__()
         if layers < 2:
@@ -101,17 +103,25 @@ class TimeDecoder(nn.Module):
         self.norm = nn.LayerNorm(latent_channels) if normalize else nn.Identity()
         self.lin_node = nn.Linear(latent_channels + cond_channels, hidden_channels)
         self.lin_time = nn.Linear(self.time.out_channels, hidden_channels, bias=False)
+        self.lin_point = nn.Linear(point_channels, hidden_channels, bias=False) if point_channels else None
         rest: list[nn.Module] = []
         for _ in range(layers - 2):
             rest += [nn.SiLU(), nn.Linear(hidden_channels, hidden_channels)]
         self.rest = nn.Sequential(*rest, nn.SiLU(), nn.Linear(hidden_channels, out_channels))
 
-    def forward(self, h: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
-        """``h [N, d]``, ``t [S]`` (normalised times), ``cond [N, c]`` -> ``[N, S, out_channels]``."""
+    def forward(
+        self, h: Tensor, t: Tensor, cond: Tensor | None = None, point: Tensor | None = None
+    ) -> Tensor:
+        """``h [N, d]``, ``t [S]`` (normalised), ``cond [N, c]``, ``point [N, S, p]`` -> ``[N, S, out]``."""
         h = self.norm(h)
         node = self.lin_node(h if cond is None else torch.cat([h, cond.to(h.dtype)], dim=-1))  # [N, m]
         time = self.lin_time(self.time(t.to(h.device)))  # [S, m]
-        return self.rest(node[:, None, :] + time[None, :, :])  # [N, S, out]
+        first = node[:, None, :] + time[None, :, :]  # [N, S, m]
+        if self.lin_point is not None:
+            if point is None:
+                raise ValueError("this decoder reads a per-node, per-time input (point); none was given")
+            first = first + self.lin_point(point.to(h.dtype))
+        return self.rest(first)  # [N, S, out]
 
 
 class ModeDecoder(nn.Module):
@@ -191,6 +201,10 @@ class DirectSurrogate(ModelFile, nn.Module):
             (frequencies per axis; 0: none).
         decoder_modes: Modes of a :class:`ModeDecoder` whose output is added to the time
             decoder's (0: none).
+        base_input: With ``base="mean"``: every fine node reads the mean training displacement
+            at this many evenly spaced saved steps (the last among them), and the time decoder
+            reads it at the asked time; where the mean part ends up (the tools' imprint on it)
+            is then an input, not something to learn (0: neither).
         **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN` (``hidden_channels``,
             ``mlp_channels``, the stacks' layer counts, ``aggr``); its output is the latent code,
             ``hidden_channels`` wide.
@@ -213,6 +227,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         settings_input: bool = True,
         position_frequencies: int = 4,
         decoder_modes: int = 0,
+        base_input: int = 0,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -223,6 +238,10 @@ class DirectSurrogate(ModelFile, nn.Module):
             raise ValueError(f"base must be one of {BASES}, got {base!r}")
         if loss_steps is not None and loss_steps < 1:
             raise ValueError(f"loss_steps must be >= 1 or None, got {loss_steps}")
+        if base_input < 0 or (base_input and base != "mean"):
+            raise ValueError(
+                f"base_input must be 0, or >= 1 with base='mean'; got {base_input} with {base!r}"
+            )
         from torch_ampn.transforms.contact import ComponentRadiusGraph
 
         self.num_components = num_components
@@ -241,21 +260,25 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.settings_input = bool(settings_input)
         code = 6 * num_grippers if self.settings_input else 0  # grippers' positions and forces at t = 0
         sizes["fine_in_channels"] += code
+        raw_fine = sizes["fine_in_channels"]  # what node_norm["fine"] normalises
+        self.base_input = int(base_input)
+        sizes["fine_in_channels"] += 3 * self.base_input  # the mean displacement at base_input steps
         self.model = RobinAMPN(**sizes, out_channels=latent, num_levels=num_levels, **network)
         self.settings_norm = Normalizer(max(code, 1))
         self.position_frequencies = int(position_frequencies)
         self.position_norm = Normalizer(3)  # of the initial positions: what the Fourier features read
         cond = code + 6 * self.position_frequencies
         self.decoder = TimeDecoder(
-            latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers, cond
-        )
+            latent, int(network.get("mlp_channels", 128)), 3, time_frequencies, decoder_layers, cond,
+            point_channels=3 if self.base_input else 0,
+        )  # fmt: skip
         self.modes = (
             ModeDecoder(latent, code, decoder_modes, int(network.get("mlp_channels", 128)), time_frequencies)
             if decoder_modes
             else None
         )
         self.node_norm = nn.ModuleDict(
-            {"fine": Normalizer(sizes["fine_in_channels"]), "coarse": Normalizer(num_coarse_node_features())}
+            {"fine": Normalizer(raw_fine), "coarse": Normalizer(num_coarse_node_features())}
         )
         self.edge_norm = nn.ModuleDict({rel: Normalizer(num_edge_features(rel)) for rel in RELATIONS})
         self.target_norm = Normalizer(3, center=False)  # the scale of the departure from the base
@@ -263,10 +286,15 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.base_norm: Normalizer | None = None
         # (T, N) of the mean base once known: extra state, not a buffer (weight averaging would average it)
         self.base_shape: tuple[int, int] = (0, 0)
+        # base_input: the scales of the mean base as the nodes ([N, 3 k]) and the decoder ([N, S, 3]) read it
+        self.base_input_norm = Normalizer(3 * self.base_input) if self.base_input else None
+        self.base_point_norm = Normalizer(3) if self.base_input else None
 
     # ---- statistics --------------------------------------------------------------------
     def _normalizers(self) -> list[Normalizer]:
         base = [] if self.base_norm is None else [self.base_norm]
+        if self.base_input_norm is not None and self.base_point_norm is not None:
+            base += [self.base_input_norm, self.base_point_norm]
         return [
             *self.node_norm.values(),
             *self.edge_norm.values(),
@@ -322,6 +350,11 @@ class DirectSurrogate(ModelFile, nn.Module):
             m2 = self.base_norm.running_m2.reshape(steps, nodes, 3)[:, self._ply_mask]  # [T, N_ply, 3]
             self.target_norm.count.fill_(float(self.base_norm.count) * m2.shape[0] * m2.shape[1])
             self.target_norm.running_m2.copy_(m2.sum((0, 1)))
+            if self.base_input_norm is not None and self.base_point_norm is not None:
+                mean = self.base_norm.running_mean.reshape(steps, nodes, 3)  # [T, N, 3]
+                picked = mean[self._base_input_steps() - 1].transpose(0, 1).flatten(1)  # [N, 3 k]
+                self.base_input_norm.update(picked)
+                self.base_point_norm.update(mean.reshape(-1, 3))
         for n in self._normalizers():
             n.freeze()
 
@@ -342,6 +375,11 @@ class DirectSurrogate(ModelFile, nn.Module):
         ):
             self.base_norm = Normalizer(state_dict[key].numel()).to(state_dict[key].device)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _base_input_steps(self) -> Tensor:
+        """The ``base_input`` saved steps (1-based) the nodes read the mean base at, ``LongTensor[k]``."""
+        steps = self.base_shape[0]
+        return torch.linspace(steps / self.base_input, steps, self.base_input).round().long().clamp(1, steps)
 
     # ---- features and prediction -------------------------------------------------------
     def _raw_features(self, data: HierarchicalData):
@@ -398,6 +436,10 @@ class DirectSurrogate(ModelFile, nn.Module):
         """
         x_dict, e_dict = self._raw_features(data)
         x_dict = {lk: self.node_norm["fine" if lk == "l0" else "coarse"](x) for lk, x in x_dict.items()}
+        if self.base_input_norm is not None:
+            steps = self._base_input_steps().to(x_dict["l0"].device)
+            base = self._base(data, steps).flatten(1)  # [N_0, 3 k]
+            x_dict["l0"] = torch.cat([x_dict["l0"], self.base_input_norm(base)], dim=-1)
         e_dict = {key: self.edge_norm[key[1]](e) for key, e in e_dict.items()}
         empty = torch.empty(2, 0, dtype=torch.long, device=data["l0"].pos.device)
         index_dict = {key: data[key].edge_index if key in data.edge_types else empty for key in e_dict}
@@ -406,12 +448,28 @@ class DirectSurrogate(ModelFile, nn.Module):
             batch_dict = {level_name(k): data[level_name(k)].batch for k in range(self.num_levels)}
         return self.model(x_dict, index_dict, e_dict, batch_dict=batch_dict)
 
-    def _decode(self, data: HierarchicalData, h: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
-        """The normalised departure of the (``mask``-ed) ``l0`` nodes at times ``t [S]``, ``[N, S, 3]``."""
+    def _decode(
+        self,
+        data: HierarchicalData,
+        h: Tensor,
+        t: Tensor,
+        mask: Tensor | None = None,
+        base: Tensor | None = None,
+    ) -> Tensor:
+        """The normalised departure of the (``mask``-ed) ``l0`` nodes at times ``t [S]``, ``[N, S, 3]``.
+
+        ``base [N_0, S, 3]``: the mean base at those times (read by the decoder with ``base_input``).
+        """
         cond = self._condition(data)
+        point = None
+        if self.base_point_norm is not None:
+            if base is None:
+                raise ValueError("base_input: the decoder reads the mean base at the asked times; none given")
+            point = self.base_point_norm(base)
         if mask is not None:
             h, cond = h[mask], None if cond is None else cond[mask]
-        out = self.decoder(h, t, cond)
+            point = None if point is None else point[mask]
+        out = self.decoder(h, t, cond, point)
         if self.modes is not None:
             fine = data["l0"]
             batch = fine.batch if "batch" in fine else None
@@ -460,8 +518,10 @@ class DirectSurrogate(ModelFile, nn.Module):
         self._check_steps(num_steps)
         device = data["l0"].pos.device
         steps = torch.arange(1, num_steps + 1, device=device) if steps is None else steps.to(device)
-        out = self.target_norm.denormalize(self._decode(data, self.latent(data), steps / num_steps))
         base = self._base(data, steps)
+        out = self.target_norm.denormalize(
+            self._decode(data, self.latent(data), steps / num_steps, base=base)
+        )
         return out if base is None else out + base
 
     def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
@@ -478,7 +538,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         base = self._base(data, steps)
         if base is not None:
             target = target - base[ply]
-        out = self._decode(data, self.latent(data), steps / num_steps, ply)  # [N_ply, S, 3]: tools prescribed
+        out = self._decode(data, self.latent(data), steps / num_steps, ply, base)  # [N_ply, S, 3]
         return (out - self.target_norm(target)).square().mean()
 
     def extra_repr(self) -> str:

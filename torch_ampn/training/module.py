@@ -84,6 +84,7 @@ DIRECT_ARGUMENTS = (
     "settings_input",
     "position_frequencies",
     "decoder_modes",
+    "base_input",
 )
 
 #: Next-step settings a direct model has no use for, with the values that mean "off".
@@ -173,6 +174,8 @@ class AMPNLightningModule(L.LightningModule):
             decoder (frequencies per axis; 0: none).
         decoder_modes: Direct mode: learned modes with coefficients of the settings and time,
             added to the time decoder (:class:`~torch_ampn.forming.direct.ModeDecoder`; 0: none).
+        base_input: Direct mode, ``base: mean``: the nodes read the mean training displacement at
+            this many evenly spaced steps and the decoder at the asked time (0: neither).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -267,6 +270,7 @@ class AMPNLightningModule(L.LightningModule):
         settings_input: bool = True,
         position_frequencies: int = 4,
         decoder_modes: int = 0,
+        base_input: int = 0,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
