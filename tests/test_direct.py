@@ -101,6 +101,22 @@ def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample():
     torch.testing.assert_close(dec(h[3:], settings[1:], t), out[3:])  # one sample, no batch vector
 
 
+def test_mode_decoder_files_of_the_older_parameter_names_load():
+    torch.manual_seed(0)
+    dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8)
+    torch.nn.init.normal_(dec.branch.rest[-1].weight)
+    old = {}
+    for key, value in dec.state_dict().items():
+        for before, now in ModeDecoder.OLD_NAMES.items():
+            key = key.replace(now, before) if key.startswith(now) else key
+        old[key] = value
+    assert "branch_time.weight" in old and "branch.3.bias" in old
+    fresh = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8)
+    fresh.load_state_dict(old)
+    h, settings, t = torch.randn(6, 5), torch.randn(1, 4), torch.tensor([0.5, 1.0])
+    torch.testing.assert_close(fresh(h, settings, t), dec(h, settings, t), rtol=0, atol=0)
+
+
 def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(tiny_data):
     without, _ = _fitted(tiny_data)
     model, train = _fitted(tiny_data, decoder_modes=4)  # same seed: the same network before the modes

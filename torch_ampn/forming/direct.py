@@ -163,6 +163,22 @@ class ModeDecoder(nn.Module):
         nn.init.zeros_(self.branch.rest[-1].weight)
         nn.init.zeros_(self.branch.rest[-1].bias)
 
+    #: Parameter names of files written before the coefficients' MLP was a TimeDecoder (2026-12-05).
+    OLD_NAMES = {
+        "branch_settings.": "branch.lin_node.",
+        "branch_time.": "branch.lin_time.",
+        "branch.1.": "branch.rest.1.",
+        "branch.3.": "branch.rest.3.",
+    }
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Rename the parameters of older files (:attr:`OLD_NAMES`) before loading them."""
+        for key in [k for k in state_dict if k.startswith(prefix)]:
+            for old, new in self.OLD_NAMES.items():
+                if key.startswith(prefix + old):
+                    state_dict[prefix + new + key[len(prefix + old) :]] = state_dict.pop(key)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def forward(self, h: Tensor, settings: Tensor, t: Tensor, batch: Tensor | None = None) -> Tensor:
         """``h [N, d]``, ``settings [B, c]``, ``t [S]``, ``batch [N]`` (or ``None``) -> ``[N, S, 3]``."""
         phi = self.trunk(self.norm(h)).unflatten(-1, (self.modes, 3))  # [N, K, 3]
