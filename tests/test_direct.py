@@ -81,10 +81,13 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
         torch.testing.assert_close(f[0], a[-1], atol=1e-5, rtol=1e-5)
 
 
-def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample():
+@pytest.mark.parametrize("layers", [3, 4])
+def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample(layers):
     """Against a float64 loop over nodes, steps and modes, with two samples in one batch."""
     torch.manual_seed(0)
-    dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8).double()
+    dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8, layers=layers)
+    dec = dec.double()
+    assert sum(isinstance(m, torch.nn.Linear) for m in dec.branch.rest) == layers - 1
     torch.nn.init.normal_(dec.branch.rest[-1].weight)  # it starts at zero
     h, settings = torch.randn(6, 5, dtype=torch.float64), torch.randn(2, 4, dtype=torch.float64)
     t, batch = torch.tensor([0.25, 1.0], dtype=torch.float64), torch.tensor([0, 0, 0, 1, 1, 1])

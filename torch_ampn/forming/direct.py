@@ -137,8 +137,9 @@ class ModeDecoder(nn.Module):
         latent_channels: ``d``.
         settings_channels: ``c`` (0: the coefficients depend on time alone).
         modes: ``K``.
-        hidden_channels: Width of the branch MLP (two hidden layers, SiLU).
+        hidden_channels: Width of the branch MLP (SiLU).
         time_frequencies: ``F`` of :class:`TimeEncoding`.
+        layers: Linear maps of the branch MLP (at least 2).
     """
 
     def __init__(
@@ -148,6 +149,7 @@ class ModeDecoder(nn.Module):
         modes: int,
         hidden_channels: int = 128,
         time_frequencies: int = 5,
+        layers: int = 3,
     ) -> None:
         super().__init__()
         if modes < 1:
@@ -157,7 +159,7 @@ class ModeDecoder(nn.Module):
         self.trunk = nn.Linear(latent_channels, 3 * modes)
         # the coefficients: a time decoder of the settings, [B, c], [S] -> [B, S, K]
         self.branch = TimeDecoder(
-            max(settings_channels, 1), hidden_channels, modes, time_frequencies, layers=3, normalize=False
+            max(settings_channels, 1), hidden_channels, modes, time_frequencies, layers, normalize=False
         )
         # the modes start at zero: added to another decoder, this one first changes nothing
         nn.init.zeros_(self.branch.rest[-1].weight)
@@ -217,6 +219,9 @@ class DirectSurrogate(ModelFile, nn.Module):
             (frequencies per axis; 0: none).
         decoder_modes: Modes of a :class:`ModeDecoder` whose output is added to the time
             decoder's (0: none).
+        mode_channels: Width of the modes' coefficient MLP (``None``: ``mlp_channels``); it runs
+            once per sample and time, not per node, so width costs little.
+        mode_layers: Linear maps of the coefficient MLP.
         base_input: With ``base="mean"``: every fine node reads the mean training displacement
             at this many evenly spaced saved steps (the last among them), and the time decoder
             reads it at the asked time; where the mean part ends up (the tools' imprint on it)
@@ -243,6 +248,8 @@ class DirectSurrogate(ModelFile, nn.Module):
         settings_input: bool = True,
         position_frequencies: int = 4,
         decoder_modes: int = 0,
+        mode_channels: int | None = None,
+        mode_layers: int = 3,
         base_input: int = 0,
         **network: Any,
     ) -> None:
@@ -289,7 +296,14 @@ class DirectSurrogate(ModelFile, nn.Module):
             point_channels=3 if self.base_input else 0,
         )  # fmt: skip
         self.modes = (
-            ModeDecoder(latent, code, decoder_modes, int(network.get("mlp_channels", 128)), time_frequencies)
+            ModeDecoder(
+                latent,
+                code,
+                decoder_modes,
+                int(mode_channels or network.get("mlp_channels", 128)),
+                time_frequencies,
+                mode_layers,
+            )  # fmt: skip
             if decoder_modes
             else None
         )

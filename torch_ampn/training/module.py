@@ -84,6 +84,8 @@ DIRECT_ARGUMENTS = (
     "settings_input",
     "position_frequencies",
     "decoder_modes",
+    "mode_channels",
+    "mode_layers",
     "base_input",
 )
 
@@ -174,6 +176,8 @@ class AMPNLightningModule(L.LightningModule):
             decoder (frequencies per axis; 0: none).
         decoder_modes: Direct mode: learned modes with coefficients of the settings and time,
             added to the time decoder (:class:`~torch_ampn.forming.direct.ModeDecoder`; 0: none).
+        mode_channels: Direct mode: width of the modes' coefficient MLP (``None``: ``mlp_channels``).
+        mode_layers: Direct mode: linear maps of the coefficient MLP.
         base_input: Direct mode, ``base: mean``: the nodes read the mean training displacement at
             this many evenly spaced steps and the decoder at the asked time (0: neither).
         hidden_channels: Latent size d (paper: 128).
@@ -270,6 +274,8 @@ class AMPNLightningModule(L.LightningModule):
         settings_input: bool = True,
         position_frequencies: int = 4,
         decoder_modes: int = 0,
+        mode_channels: int | None = None,
+        mode_layers: int = 3,
         base_input: int = 0,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
