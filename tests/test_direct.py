@@ -104,6 +104,29 @@ def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample(la
     torch.testing.assert_close(dec(h[3:], settings[1:], t), out[3:])  # one sample, no batch vector
 
 
+def test_space_time_modes_are_modes_of_node_and_time_times_coefficients_of_the_settings():
+    """``space_time=True`` against a float64 loop, with two samples in one batch."""
+    torch.manual_seed(0)
+    dec = ModeDecoder(5, settings_channels=4, modes=3, hidden_channels=8, space_time=True).double()
+    torch.nn.init.normal_(dec.branch[-1].weight)  # it starts at zero
+    h, settings = torch.randn(6, 5, dtype=torch.float64), torch.randn(2, 4, dtype=torch.float64)
+    t, batch = torch.tensor([0.25, 1.0], dtype=torch.float64), torch.tensor([0, 0, 0, 1, 1, 1])
+    out = dec(h, settings, t, batch)  # [6, 2, 3]
+    trunk = dec.trunk
+    norm = torch.nn.functional.layer_norm(h, (5,), trunk.norm.weight, trunk.norm.bias)
+    silu = torch.nn.functional.silu
+    for i in range(6):
+        s = settings[batch[i]]
+        w = [m for m in dec.branch if isinstance(m, torch.nn.Linear)]
+        coef = w[2].weight @ silu(w[1].weight @ silu(w[0].weight @ s + w[0].bias) + w[1].bias) + w[2].bias
+        for j in range(2):
+            freq = trunk.time.frequencies
+            gamma = torch.cat([t[j : j + 1], (freq * t[j]).sin(), (freq * t[j]).cos()])
+            phi = trunk.rest(trunk.lin_node(norm[i]) + trunk.lin_time.weight @ gamma).reshape(3, 3)  # [K, 3]
+            torch.testing.assert_close(out[i, j], (coef[:, None] * phi).sum(0))
+    torch.testing.assert_close(dec(h[3:], settings[1:], t), out[3:])  # one sample, no batch vector
+
+
 def test_mode_decoder_files_of_the_older_parameter_names_load():
     torch.manual_seed(0)
     dec = ModeDecoder(latent_channels=5, settings_channels=4, modes=3, hidden_channels=8)
@@ -120,15 +143,17 @@ def test_mode_decoder_files_of_the_older_parameter_names_load():
     torch.testing.assert_close(fresh(h, settings, t), dec(h, settings, t), rtol=0, atol=0)
 
 
-def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(tiny_data):
+@pytest.mark.parametrize("space_time", [False, True])
+def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(tiny_data, space_time):
     without, _ = _fitted(tiny_data)
-    model, train = _fitted(tiny_data, decoder_modes=4)  # same seed: the same network before the modes
+    # same seed: the same network before the modes
+    model, train = _fitted(tiny_data, decoder_modes=4, space_time_modes=space_time)
     traj = TrajectoryDataset(tiny_data, "test")[0]
     h = _hierarchy(traj)
     torch.testing.assert_close(
         predict_direct(model.eval(), [traj], h)[0], predict_direct(without.eval(), [traj], h)[0]
     )
-    torch.nn.init.normal_(model.modes.branch.rest[-1].weight)
+    torch.nn.init.normal_((model.modes.branch if space_time else model.modes.branch.rest)[-1].weight)
     trajs = [traj, *train.trajectories]
     alone = [predict_direct(model, [t], h)[0] for t in trajs]
     for a, b in zip(alone, predict_direct(model, trajs, h, batch_size=2), strict=True):
@@ -138,7 +163,7 @@ def test_modes_start_at_zero_and_batches_still_predict_what_single_settings_do(t
 
     loss = model.loss(Batch.from_data_list([train[0], train[1]]))  # the masked, batched path
     loss.backward()
-    assert model.modes.trunk.weight.grad.abs().sum() > 0
+    assert all(p.grad.abs().sum() > 0 for p in model.modes.trunk.parameters())
 
 
 def test_it_learns_the_two_settings_apart(tiny_data):

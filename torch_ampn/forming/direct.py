@@ -133,6 +133,11 @@ class ModeDecoder(nn.Module):
     time, as in a DeepONet. POD + GP has this form with fixed modes; here the modes are learned
     with the rest and the product lets a global setting scale a local shape directly.
 
+    With ``space_time=True`` the time moves from the coefficients to the modes, POD + GP's exact
+    form (a mode is the shape of a whole trajectory):
+    :math:`\mathbf{u}_i(t) = \sum_k b_k(\mathbf{s})\, \boldsymbol{\phi}_k(\mathbf{h}_i, \gamma(t))`,
+    the trunk a :class:`TimeDecoder` of the latent code, the branch an MLP of the settings alone.
+
     Args:
         latent_channels: ``d``.
         settings_channels: ``c`` (0: the coefficients depend on time alone).
@@ -140,6 +145,7 @@ class ModeDecoder(nn.Module):
         hidden_channels: Width of the branch MLP (SiLU).
         time_frequencies: ``F`` of :class:`TimeEncoding`.
         layers: Linear maps of the branch MLP (at least 2).
+        space_time: Modes of the node and the time, coefficients of the settings alone.
     """
 
     def __init__(
@@ -150,20 +156,36 @@ class ModeDecoder(nn.Module):
         hidden_channels: int = 128,
         time_frequencies: int = 5,
         layers: int = 3,
+        space_time: bool = False,
     ) -> None:
         super().__init__()
         if modes < 1:
             raise ValueError(f"decoder_modes must be >= 1, got {modes}")
+        if layers < 2:
+            raise ValueError(f"mode_layers must be >= 2, got {layers}")
         self.modes = modes
+        self.space_time = space_time
         self.norm = nn.LayerNorm(latent_channels)
-        self.trunk = nn.Linear(latent_channels, 3 * modes)
-        # the coefficients: a time decoder of the settings, [B, c], [S] -> [B, S, K]
-        self.branch = TimeDecoder(
-            max(settings_channels, 1), hidden_channels, modes, time_frequencies, layers, normalize=False
-        )
+        self.trunk: nn.Module
+        self.branch: nn.Module
+        if space_time:
+            # the modes: a time decoder of the latent code, [N, d], [S] -> [N, S, 3 K]
+            self.trunk = TimeDecoder(latent_channels, hidden_channels, 3 * modes, time_frequencies, 3)
+            # the coefficients: an MLP of the settings, [B, c] -> [B, K]
+            sizes = [max(settings_channels, 1)] + [hidden_channels] * (layers - 1)
+            hidden = [m for a, b in zip(sizes, sizes[1:], strict=False) for m in (nn.Linear(a, b), nn.SiLU())]
+            self.branch = nn.Sequential(*hidden, nn.Linear(sizes[-1], modes))
+            last = self.branch[-1]
+        else:
+            self.trunk = nn.Linear(latent_channels, 3 * modes)
+            # the coefficients: a time decoder of the settings, [B, c], [S] -> [B, S, K]
+            self.branch = TimeDecoder(
+                max(settings_channels, 1), hidden_channels, modes, time_frequencies, layers, normalize=False
+            )
+            last = self.branch.rest[-1]
         # the modes start at zero: added to another decoder, this one first changes nothing
-        nn.init.zeros_(self.branch.rest[-1].weight)
-        nn.init.zeros_(self.branch.rest[-1].bias)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     #: Parameter names of files written before the coefficients' MLP was a TimeDecoder (2026-12-05).
     OLD_NAMES = {
@@ -183,6 +205,11 @@ class ModeDecoder(nn.Module):
 
     def forward(self, h: Tensor, settings: Tensor, t: Tensor, batch: Tensor | None = None) -> Tensor:
         """``h [N, d]``, ``settings [B, c]``, ``t [S]``, ``batch [N]`` (or ``None``) -> ``[N, S, 3]``."""
+        if self.space_time:
+            phi = self.trunk(h, t).unflatten(-1, (self.modes, 3))  # [N, S, K, 3]
+            coef = self.branch(settings.to(h.dtype))  # [B, K]
+            coef = coef[batch] if batch is not None else coef.expand(h.size(0), -1)  # [N, K]
+            return torch.einsum("nk,nskc->nsc", coef, phi)
         phi = self.trunk(self.norm(h)).unflatten(-1, (self.modes, 3))  # [N, K, 3]
         coef = self.branch(settings.to(h.dtype), t)  # [B, S, K]
         coef = coef[batch] if batch is not None else coef.expand(h.size(0), -1, -1)  # [N, S, K]
@@ -222,6 +249,8 @@ class DirectSurrogate(ModelFile, nn.Module):
         mode_channels: Width of the modes' coefficient MLP (``None``: ``mlp_channels``); it runs
             once per sample and time, not per node, so width costs little.
         mode_layers: Linear maps of the coefficient MLP.
+        space_time_modes: The modes are functions of the node and the time, their coefficients
+            of the settings alone (POD + GP's form; see :class:`ModeDecoder`).
         base_input: With ``base="mean"``: every fine node reads the mean training displacement
             at this many evenly spaced saved steps (the last among them), and the time decoder
             reads it at the asked time; where the mean part ends up (the tools' imprint on it)
@@ -250,6 +279,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         decoder_modes: int = 0,
         mode_channels: int | None = None,
         mode_layers: int = 3,
+        space_time_modes: bool = False,
         base_input: int = 0,
         **network: Any,
     ) -> None:
@@ -303,7 +333,8 @@ class DirectSurrogate(ModelFile, nn.Module):
                 int(mode_channels or network.get("mlp_channels", 128)),
                 time_frequencies,
                 mode_layers,
-            )  # fmt: skip
+                space_time_modes,
+            )
             if decoder_modes
             else None
         )

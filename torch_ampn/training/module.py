@@ -86,6 +86,7 @@ DIRECT_ARGUMENTS = (
     "decoder_modes",
     "mode_channels",
     "mode_layers",
+    "space_time_modes",
     "base_input",
 )
 
@@ -178,6 +179,8 @@ class AMPNLightningModule(L.LightningModule):
             added to the time decoder (:class:`~torch_ampn.forming.direct.ModeDecoder`; 0: none).
         mode_channels: Direct mode: width of the modes' coefficient MLP (``None``: ``mlp_channels``).
         mode_layers: Direct mode: linear maps of the coefficient MLP.
+        space_time_modes: Direct mode: modes of the node and the time, coefficients of the
+            settings alone (POD + GP's form).
         base_input: Direct mode, ``base: mean``: the nodes read the mean training displacement at
             this many evenly spaced steps and the decoder at the asked time (0: neither).
         hidden_channels: Latent size d (paper: 128).
@@ -276,6 +279,7 @@ class AMPNLightningModule(L.LightningModule):
         decoder_modes: int = 0,
         mode_channels: int | None = None,
         mode_layers: int = 3,
+        space_time_modes: bool = False,
         base_input: int = 0,
         lr: float = 1e-4,
         final_lr: float = 1e-5,
