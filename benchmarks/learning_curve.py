@@ -11,6 +11,11 @@ whole training split: what the best coefficients would reach) and the chaos floo
 ``torch-ampn-data spread --chaos`` (the RMS distance of two runs of the same settings; a
 predictor of their mean errs by at least that over sqrt 2 against one run). Prints a table,
 writes JSON and a plot.
+
+``--direct benchmarks/results/direct/table.json`` puts the direct model's runs of
+``benchmarks/direct.py`` beside it (the rows of ``--direct-variant``: mean and spread over
+seeds, one series per training-step count, the same curve fitted where a series has three sizes
+or more); those runs took the *first* ``n`` training trajectories, POD + GP random subsets.
 """
 
 from __future__ import annotations
@@ -61,6 +66,32 @@ def fit_curve(sizes: list[int], rmse: list[float]) -> dict:
     return {"e_mm": math.sqrt(e2), "b": b, "c": c, "at_684": math.sqrt(model(684.0, e2, b, c))}
 
 
+def direct_series(table: Path, variant: str) -> list[dict]:
+    """The direct model's test RMSE per training-step count: ``[{steps, n, rmse_mean, rmse_std, seeds}]``."""
+    rows = [r for r in json.loads(table.read_text())["rows"] if r["variant"] == variant]
+    if not rows:
+        raise ValueError(f"{table}: field 'rows' has no run of variant {variant!r}")
+    series = []
+    for steps in sorted({r["steps"] for r in rows}):
+        points = sorted((r for r in rows if r["steps"] == steps), key=lambda r: r["train"])
+        entry: dict = {
+            "steps": steps,
+            "points": [
+                {
+                    "n": r["train"],
+                    "rmse_mean": r["rmse_mm_mean"],
+                    "rmse_std": r["rmse_mm_std"],
+                    "seeds": r["seeds"],
+                }
+                for r in points
+            ],
+        }
+        if len(points) >= 3:
+            entry["curve"] = fit_curve([r["train"] for r in points], [r["rmse_mm_mean"] for r in points])
+        series.append(entry)
+    return series
+
+
 def plot(path: Path, result: dict) -> None:
     """RMSE against training trajectories, the fitted curve and the floors."""
     import matplotlib
@@ -69,11 +100,25 @@ def plot(path: Path, result: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for row in result["points"]:
-        ax.plot([row["n"]] * len(row["rmse"]), row["rmse"], "o", color="C0", alpha=0.6)
+    for k, row in enumerate(result["points"]):
+        label = "POD + GP (random subsets)" if k == 0 else None
+        ax.plot([row["n"]] * len(row["rmse"]), row["rmse"], "o", color="C0", alpha=0.6, label=label)
     curve = result["curve"]
     n = np.geomspace(min(r["n"] for r in result["points"]), 800, 100)
-    ax.plot(n, np.sqrt(curve["e_mm"] ** 2 + curve["b"] * n ** (-curve["c"])), "-", color="C0", label="fit")
+    ax.plot(
+        n, np.sqrt(curve["e_mm"] ** 2 + curve["b"] * n ** (-curve["c"])), "-", color="C0", label="its fit"
+    )
+    for k, series in enumerate(result.get("direct", [])):
+        color = f"C{4 + k}"
+        xs = [p["n"] for p in series["points"]]
+        ax.errorbar(
+            xs, [p["rmse_mean"] for p in series["points"]], yerr=[p["rmse_std"] for p in series["points"]],
+            fmt="s", color=color, label=f"direct model, {series['steps']:,} steps",
+        )  # fmt: skip
+        if "curve" in series:
+            c = series["curve"]
+            m = np.geomspace(min(xs), 800, 100)
+            ax.plot(m, np.sqrt(c["e_mm"] ** 2 + c["b"] * m ** (-c["c"])), "--", color=color)
     ax.axhline(result["basis_floor_mm"], color="C2", ls="--", label="POD basis floor")
     if result.get("chaos_floor_mm"):
         ax.axhline(result["chaos_floor_mm"] / math.sqrt(2), color="C3", ls=":", label="chaos floor / sqrt 2")
@@ -82,8 +127,8 @@ def plot(path: Path, result: dict) -> None:
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("training trajectories")
     ax.set_ylabel("test rollout RMSE [mm]")
-    ax.set_title("POD + GP on the settings")
-    ax.legend()
+    ax.set_title("POD + GP on the settings" + (" and the direct model" if result.get("direct") else ""))
+    ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 0.12))
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
     fig.savefig(tmp, dpi=110)
@@ -98,7 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="random subsets per size")
     parser.add_argument("--spread", type=Path, default=None, help="JSON of torch-ampn-data spread --chaos")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--direct", type=Path, default=None, help="table.json of benchmarks/direct.py")
+    parser.add_argument("--direct-variant", default="direct_ampn")
     args = parser.parse_args(argv)
+    direct = direct_series(args.direct, args.direct_variant) if args.direct else []
     train = list(TrajectoryDataset(args.data_dir, "train", max_cached_mb=0))
     test = list(TrajectoryDataset(args.data_dir, "test", max_cached_mb=0))
     rng = np.random.default_rng(0)
@@ -124,6 +172,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     if args.spread:
         result["chaos_floor_mm"] = json.loads(args.spread.read_text())["chaos_floor"]["mean"]
+    if direct:
+        result["direct"] = direct
+        for series in direct:
+            text = ", ".join(f"{p['n']}: {p['rmse_mean']:.3f}" for p in series["points"])
+            fit = f"; levels off at {series['curve']['e_mm']:.3f} mm" if "curve" in series else ""
+            print(f"direct model, {series['steps']} steps: {text} mm{fit}")
     curve = result["curve"]
     print(
         f"fit RMSE^2 = e^2 + b n^-c: e = {curve['e_mm']:.3f} mm, c = {curve['c']:.2f}; "
