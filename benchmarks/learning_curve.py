@@ -92,6 +92,14 @@ def direct_series(table: Path, variant: str) -> list[dict]:
     return series
 
 
+def report_direct(direct: list[dict]) -> None:
+    """Print the direct model's series."""
+    for series in direct:
+        text = ", ".join(f"{p['n']}: {p['rmse_mean']:.3f}" for p in series["points"])
+        fit = f"; levels off at {series['curve']['e_mm']:.3f} mm" if "curve" in series else ""
+        print(f"direct model, {series['steps']} steps: {text} mm{fit}")
+
+
 def plot(path: Path, result: dict) -> None:
     """RMSE against training trajectories, the fitted curve and the floors."""
     import matplotlib
@@ -145,8 +153,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--direct", type=Path, default=None, help="table.json of benchmarks/direct.py")
     parser.add_argument("--direct-variant", default="direct_ampn")
+    parser.add_argument(
+        "--replot", action="store_true", help="keep --out's POD + GP points; redo the direct series and plot"
+    )
     args = parser.parse_args(argv)
     direct = direct_series(args.direct, args.direct_variant) if args.direct else []
+    if args.replot:
+        result = json.loads(args.out.read_text())
+        result["direct"] = direct
+        report_direct(direct)
+        atomic_write_text(args.out, json.dumps(result, indent=1))
+        plot(args.out.with_suffix(".png"), result)
+        print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
+        return 0
     train = list(TrajectoryDataset(args.data_dir, "train", max_cached_mb=0))
     test = list(TrajectoryDataset(args.data_dir, "test", max_cached_mb=0))
     rng = np.random.default_rng(0)
@@ -174,10 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         result["chaos_floor_mm"] = json.loads(args.spread.read_text())["chaos_floor"]["mean"]
     if direct:
         result["direct"] = direct
-        for series in direct:
-            text = ", ".join(f"{p['n']}: {p['rmse_mean']:.3f}" for p in series["points"])
-            fit = f"; levels off at {series['curve']['e_mm']:.3f} mm" if "curve" in series else ""
-            print(f"direct model, {series['steps']} steps: {text} mm{fit}")
+        report_direct(direct)
     curve = result["curve"]
     print(
         f"fit RMSE^2 = e^2 + b n^-c: e = {curve['e_mm']:.3f} mm, c = {curve['c']:.2f}; "
