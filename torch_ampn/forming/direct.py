@@ -165,7 +165,8 @@ class ModeDecoder(nn.Module):
             raise ValueError(f"mode_layers must be >= 2, got {layers}")
         self.modes = modes
         self.space_time = space_time
-        self.norm = nn.LayerNorm(latent_channels)
+        # the space-time trunk normalises the latent code itself
+        self.norm = nn.Identity() if space_time else nn.LayerNorm(latent_channels)
         self.trunk: nn.Module
         self.branch: nn.Module
         if space_time:
