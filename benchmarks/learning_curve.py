@@ -66,6 +66,18 @@ def fit_curve(sizes: list[int], rmse: list[float]) -> dict:
     return {"e_mm": math.sqrt(e2), "b": b, "c": c, "at_684": math.sqrt(model(684.0, e2, b, c))}
 
 
+def curve_rmse(curve: dict, n: np.ndarray) -> np.ndarray:
+    """RMSE of the fitted curve ``sqrt(e^2 + b n^-c)`` at sizes ``n``."""
+    return np.sqrt(curve["e_mm"] ** 2 + curve["b"] * n ** (-curve["c"]))
+
+
+def write(out: Path, result: dict) -> None:
+    """The result as JSON at ``out`` and its plot beside it."""
+    atomic_write_text(out, json.dumps(result, indent=1))
+    plot(out.with_suffix(".png"), result)
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+
+
 def direct_series(table: Path, variant: str) -> list[dict]:
     """The direct model's test RMSE per training-step count: ``[{steps, n, rmse_mean, rmse_std, seeds}]``."""
     rows = [r for r in json.loads(table.read_text())["rows"] if r["variant"] == variant]
@@ -113,9 +125,7 @@ def plot(path: Path, result: dict) -> None:
         ax.plot([row["n"]] * len(row["rmse"]), row["rmse"], "o", color="C0", alpha=0.6, label=label)
     curve = result["curve"]
     n = np.geomspace(min(r["n"] for r in result["points"]), 800, 100)
-    ax.plot(
-        n, np.sqrt(curve["e_mm"] ** 2 + curve["b"] * n ** (-curve["c"])), "-", color="C0", label="its fit"
-    )
+    ax.plot(n, curve_rmse(curve, n), "-", color="C0", label="its fit")
     for k, series in enumerate(result.get("direct", [])):
         color = f"C{4 + k}"
         xs = [p["n"] for p in series["points"]]
@@ -124,9 +134,8 @@ def plot(path: Path, result: dict) -> None:
             fmt="s", color=color, label=f"direct model, {series['steps']:,} steps",
         )  # fmt: skip
         if "curve" in series:
-            c = series["curve"]
             m = np.geomspace(min(xs), 800, 100)
-            ax.plot(m, np.sqrt(c["e_mm"] ** 2 + c["b"] * m ** (-c["c"])), "--", color=color)
+            ax.plot(m, curve_rmse(series["curve"], m), "--", color=color)
     ax.axhline(result["basis_floor_mm"], color="C2", ls="--", label="POD basis floor")
     if result.get("chaos_floor_mm"):
         ax.axhline(result["chaos_floor_mm"] / math.sqrt(2), color="C3", ls=":", label="chaos floor / sqrt 2")
@@ -162,9 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         result = json.loads(args.out.read_text())
         result["direct"] = direct
         report_direct(direct)
-        atomic_write_text(args.out, json.dumps(result, indent=1))
-        plot(args.out.with_suffix(".png"), result)
-        print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
+        write(args.out, result)
         return 0
     train = list(TrajectoryDataset(args.data_dir, "train", max_cached_mb=0))
     test = list(TrajectoryDataset(args.data_dir, "test", max_cached_mb=0))
@@ -201,9 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         f"({result['basis_components']} components)"
         + (f"; chaos floor {result['chaos_floor_mm']:.3f} mm" if "chaos_floor_mm" in result else "")
     )
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    plot(args.out.with_suffix(".png"), result)
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
+    write(args.out, result)
     return 0
 
 
