@@ -81,6 +81,31 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
         torch.testing.assert_close(f[0], a[-1], atol=1e-5, rtol=1e-5)
 
 
+def test_settings_of_one_initial_state_share_its_contact_search_and_predict_as_alone(tiny_data):
+    model, _ = _fitted(tiny_data)
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    h = _hierarchy(traj)
+    forces = [traj.gripper_force * f for f in (0.5, 1.0, 2.0)]
+    lifted = traj.pos.clone()
+    lifted[:, traj.ply_mask] += torch.tensor([0.0, 0.0, 50.0])  # another initial state: other contacts
+    trajs = [dataclasses.replace(traj, gripper_force=f) for f in forces]
+    trajs.insert(2, dataclasses.replace(traj, pos=lifted))
+    searches = []
+    search = model.contact.forward
+
+    def counted(data):
+        searches.append(1)
+        return search(data)
+
+    model.contact.forward = counted
+    together = predict_direct(model.eval(), trajs, h, batch_size=4)
+    assert len(searches) == 3  # the first, the lifted one, the first's again after it
+    del model.contact.forward
+    for t, b in zip(trajs, together, strict=True):
+        torch.testing.assert_close(b, predict_direct(model, [t], h)[0], atol=1e-5, rtol=1e-5)
+    assert (together[2] - together[1]).abs().max() > 1e-3  # the lifted state is not read as the first
+
+
 @pytest.mark.parametrize("layers", [3, 4])
 def test_the_mode_decoder_is_a_sum_of_modes_times_coefficients_of_each_sample(layers):
     """Against a float64 loop over nodes, steps and modes, with two samples in one batch."""

@@ -85,3 +85,21 @@ def test_forward_edges_rejects_sizes_that_do_not_add_up():
     x = torch.randn(5, 3)
     with pytest.raises(ValueError, match=r"3 \+ 3 \+ 2 do not add up to in_channels=9"):
         mlp.forward_edges(x, x, torch.randn(6, 2), torch.zeros(2, 6, dtype=torch.long))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_forward_edges_without_autograd_is_bitwise_the_autograd_path_and_leaves_its_inputs(dtype):
+    torch.manual_seed(2)
+    mlp = _randomised_mlp(4 + 4 + 5, 3, 16).to(dtype)
+    x = torch.randn(9, 4, dtype=dtype)
+    edge_index = torch.stack([torch.randint(0, 9, (30,)), torch.randint(0, 9, (30,))])
+    edge_attr = torch.randn(30, 5, dtype=dtype)
+    w = torch.randn(3, 5, dtype=dtype)
+    x_copy, e_copy = x.clone(), edge_attr.clone()
+    for residual in (None, w):
+        with_grad = mlp.forward_edges(x, x, edge_attr, edge_index, residual=residual)
+        assert with_grad.requires_grad
+        with torch.no_grad():  # the in-place path
+            without = mlp.forward_edges(x, x, edge_attr, edge_index, residual=residual)
+        assert torch.equal(without, with_grad.detach())
+    assert torch.equal(x, x_copy) and torch.equal(edge_attr, e_copy)

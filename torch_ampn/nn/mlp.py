@@ -99,7 +99,6 @@ class LayerNormMLP(nn.Module):
             z_edge, res = (edge_attr @ torch.cat([w_edge, residual]).t()).split(  # [E, H], [E, out]
                 [weight.size(0), residual.size(0)], dim=-1
             )
-        z = z_dst.index_select(0, dst) + z_src.index_select(0, src) + z_edge  # [E, H]
         blocks = [
             (f_dst, stats_dst.index_select(0, dst)),
             (f_src, stats_src.index_select(0, src)),
@@ -107,8 +106,14 @@ class LayerNormMLP(nn.Module):
         ]  # (size, [E, 2]) per block
         var = _pooled_variance(blocks, self.in_channels)  # [E, 1]
         bias = self.lin1.bias + self.lin1.weight @ self.norm.bias  # [H]: W_1 beta + b_1
-        hidden = z * torch.rsqrt(var + self.norm.eps) + bias  # [E, H]
-        out = self.lin2(self.act(hidden))  # [E, out]
+        z = z_dst.index_select(0, dst)  # [E, H]
+        if torch.is_grad_enabled():
+            z = z + z_src.index_select(0, src) + z_edge
+            hidden = self.act(z * torch.rsqrt(var + self.norm.eps) + bias)  # [E, H]
+        else:  # the same operations in place: no autograd to keep inputs for, fewer [E, H] buffers
+            z = z.add_(z_src.index_select(0, src)).add_(z_edge)
+            hidden = nn.functional.silu(z.mul_(var.add_(self.norm.eps).rsqrt_()).add_(bias), inplace=True)
+        out = self.lin2(hidden)  # [E, out]
         return out if residual is None else out + res
 
     def __repr__(self) -> str:

@@ -14,9 +14,34 @@ from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 
 
-def _input(surrogate: DirectSurrogate, traj: Trajectory, hierarchy: HierarchicalData) -> HierarchicalData:
-    """The initial-state sample of ``traj`` with the surrogate's contact edges (its ground truth unused)."""
-    return surrogate.contact(step_sample(traj, 1, hierarchy))  # the initial state; no future is read
+class _Inputs:
+    """Initial-state samples with the surrogate's contact edges, searched once per initial state.
+
+    A direct surrogate's contact edges are those of the initial positions; the settings of a
+    design study share one initial state, so its edges are found for the first and copied to
+    the rest (only after an exact comparison of the initial positions).
+    """
+
+    def __init__(self, surrogate: DirectSurrogate, hierarchy: HierarchicalData) -> None:
+        self.surrogate = surrogate
+        self.hierarchy = hierarchy
+        # (initial positions, a sample); a transform that writes node tables too is not shortcut
+        self.known: tuple[Tensor, HierarchicalData] | None = None
+        self.shortcut = not surrogate.contact.static
+
+    def __call__(self, traj: Trajectory) -> HierarchicalData:
+        """The initial-state sample of ``traj`` (its ground truth unused: no future is read)."""
+        data = step_sample(traj, 1, self.hierarchy)
+        if self.known is not None and torch.equal(self.known[0], traj.pos[0]):
+            for level in range(data.num_levels):  # what the transform wrote: edge_index (edge_attr)
+                store = data.contact(level)
+                for key, value in self.known[1].contact(level).items():
+                    store[key] = value
+            return data
+        data = self.surrogate.contact(data)
+        if self.shortcut:
+            self.known = (traj.pos[0], data)
+        return data
 
 
 @torch.no_grad()
@@ -24,7 +49,7 @@ def predict_direct(
     surrogate: DirectSurrogate,
     trajectories: Sequence[Trajectory],
     hierarchy: HierarchicalData,
-    batch_size: int = 8,
+    batch_size: int = 4,
     device: torch.device | str | None = None,
     num_steps: int | None = None,
     progress: bool = False,
@@ -39,7 +64,8 @@ def predict_direct(
         surrogate: The trained direct surrogate.
         trajectories: Their initial states, gripper settings and tool motion are used.
         hierarchy: The mesh's hierarchy.
-        batch_size: Trajectories per network pass.
+        batch_size: Trajectories per network pass (4 is the fastest per trajectory on a 2-core
+            CPU with the coarse mesh: 29 ms against 36 with 8 and 45 with 16, 2026-12-06).
         device: Where to run (default: the surrogate's device).
         num_steps: Steps to predict (default: all).
         progress: A progress bar over the batches.
@@ -60,6 +86,7 @@ def predict_direct(
 
         starts = tqdm(starts, desc="settings", unit="batch")
     out: list[Tensor] = []
+    inputs = _Inputs(surrogate, hierarchy)
     for i in starts:
         part = trajs[i : i + batch_size]
         total = part[0].num_steps
@@ -68,7 +95,7 @@ def predict_direct(
         steps = total if num_steps is None else num_steps
         if not 1 <= steps <= total:
             raise ValueError(f"num_steps must be in 1..{total}, got {steps}")
-        batch = Batch.from_data_list([_input(surrogate, t, hierarchy) for t in part]).to(device)
+        batch = Batch.from_data_list([inputs(t) for t in part]).to(device)
         asked = torch.tensor([steps]) if final else torch.arange(1, steps + 1)
         disp = surrogate.predict_displacement(batch, total, asked)  # [B N, S, 3]
         disp = disp.float().cpu().split([t.num_nodes for t in part])
