@@ -1,20 +1,20 @@
 """Seconds per setting for the formed part: the direct model against the embedded simulator.
 
-    python benchmarks/direct_speed.py --checkpoint CKPT --settings 32 --batch 8 \
+    python benchmarks/direct_speed.py --checkpoint CKPT --settings 32 --batch 1 2 4 8 16 \
         --out benchmarks/results/direct/speed.json
 
-For ``--settings`` gripper settings (random, seeded) at each ``--resolutions`` entry: the
-direct model's final state (``predict_direct(final=True)``, ``--batch`` settings per network
-pass, eager; one warm-up batch first) and, at the coarse resolution, the simulator's whole run
-of the same settings (compiled, batches of 16, a warm-up batch of 2 first so that compiling is
-not counted), side by side in one process. The simulator at the paper resolution takes about
-11 minutes per setting on 2 cores; ``--paper-simulator-json`` reads its seconds per trajectory
-from ``benchmarks/simulate.py``'s JSON (its date and machine are printed with it) instead of
-running it. Without ``--checkpoint`` the direct model has the config's architecture and
-untrained weights (the cost is the same; so at the paper resolution, where a trained model's
-mean base does not fit the mesh); the time includes building each setting's input
-(features, contact edges of the initial state), not the hierarchy (once per mesh, printed).
-Prints a table and writes JSON.
+For ``--settings`` gripper settings (random, seeded) at each ``--resolutions`` entry: the direct
+model's final state (``predict_direct(final=True)``, ``--batch`` settings per network pass, each
+batch size in turn, eager; one warm-up batch first; the fastest is the row's) and, at the coarse
+resolution, the simulator's whole run of the same settings (compiled, batches of 16, a warm-up
+batch of 2 first so that compiling is not counted), side by side in one process. The simulator
+at the paper resolution takes about 11 minutes per setting on 2 cores;
+``--paper-simulator-json`` reads its seconds per trajectory from ``benchmarks/simulate.py``'s
+JSON (its date and machine are printed with it) instead of running it. Without ``--checkpoint``
+the direct model has the config's architecture and untrained weights (the cost is the same; so
+at the paper resolution, where a trained model's mean base does not fit the mesh); the time
+includes building each setting's input (features, contact edges of the initial state), not the
+hierarchy (once per mesh, printed). Prints a table and writes JSON.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--checkpoint", type=Path, default=None)
     parser.add_argument("--resolutions", nargs="+", choices=["coarse", "paper"], default=["coarse", "paper"])
     parser.add_argument("--settings", type=int, default=32)
-    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--batch", type=int, nargs="+", default=[4], help="settings per pass (several: each)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--paper-simulator-json", type=Path, default=Path("benchmarks/results/simulate_paper_v3.json")
@@ -70,19 +70,22 @@ def main() -> None:
         start = time.perf_counter()
         hierarchy = HierarchyCache(None, max_levels=model.num_levels)(trajs[0])
         hierarchy_seconds = time.perf_counter() - start
+        by_batch = {}  # settings per pass -> seconds per setting
         with torch.inference_mode():
-            predict_direct(
-                model, trajs[: args.batch], hierarchy, batch_size=args.batch, final=True
-            )  # warm-up
-            start = time.perf_counter()
-            predict_direct(model, trajs, hierarchy, batch_size=args.batch, final=True)
-            direct = (time.perf_counter() - start) / len(trajs)
+            for batch in args.batch:
+                predict_direct(model, trajs[:batch], hierarchy, batch_size=batch, final=True)  # warm-up
+                start = time.perf_counter()
+                predict_direct(model, trajs, hierarchy, batch_size=batch, final=True)
+                by_batch[batch] = (time.perf_counter() - start) / len(trajs)
+        fastest = min(by_batch, key=by_batch.__getitem__)
+        direct = by_batch[fastest]
         row = {
             "resolution": resolution,
             "nodes": trajs[0].num_nodes,
             "settings": len(trajs),
-            "batch": args.batch,
+            "batch": fastest,
             "direct_seconds_per_setting": direct,
+            "direct_seconds_per_setting_by_batch": by_batch,
             "hierarchy_seconds_once_per_mesh": hierarchy_seconds,
             "weights": "trained" if checkpoint is not None else "untrained (the config's architecture)",
         }
@@ -115,13 +118,14 @@ def main() -> None:
         "rows": rows,
     }
     atomic_write_text(args.out, json.dumps(result, indent=2))
-    print(f"{'resolution':<11}{'nodes':>8}{'direct s':>10}{'simulator s':>13}{'speed-up':>10}")
+    print(f"{'resolution':<11}{'nodes':>8}{'batch':>6}{'direct s':>10}{'simulator s':>13}{'speed-up':>10}")
     for r in rows:
         sim = r.get("simulator_seconds_per_setting", float("nan"))
-        print(
-            f"{r['resolution']:<11}{r['nodes']:>8}{r['direct_seconds_per_setting']:>10.3f}{sim:>13.2f}"
-            f"{r.get('speed_up', float('nan')):>10.1f}"
-        )
+        for batch, seconds in r["direct_seconds_per_setting_by_batch"].items():
+            print(
+                f"{r['resolution']:<11}{r['nodes']:>8}{batch:>6}{seconds:>10.3f}{sim:>13.2f}"
+                f"{sim / seconds:>10.1f}"
+            )
 
 
 def load_model(checkpoint: Path | None, cfg: StampFormingConfig):
