@@ -3,11 +3,12 @@
     python benchmarks/direct.py data/v3_400 --variants direct_ampn direct_flat --sizes 400 \
         --seeds 0 --steps 2000 --out benchmarks/results/direct
 
-Every run is ``torch-ampn fit`` then ``torch-ampn test`` of ``examples/configs/direct.yaml`` (the
-variant's network, ``--steps`` optimiser steps) on the first ``n`` training trajectories of the
-dataset (a folder of links per size) and its whole test split, so the test report's
+Every run is ``torch-ampn fit`` then ``torch-ampn test`` of ``examples/configs/direct.yaml``
+(the variant's network, ``--steps`` optimiser steps) on the first ``n`` training trajectories of
+the dataset (a folder of links per size) and its whole test split, so the test report's
 setting-aware baselines (mean trajectory, nearest setting, linear, POD + GP) are fitted on the
-same ``n`` trajectories. ``--set key=value`` changes the config's ``model`` settings for every
+same ``n`` trajectories. ``--set key=value`` changes the config's ``model`` settings
+(``data.key=value`` the data module's, e.g. ``data.prior=pod_gp`` with ``base=prior``) for every
 variant and ``--tag`` names such a run (``<variant>-<tag>``). ``direct_flat`` is the one-level
 network with the width that gives it the AMPN's parameter count (within 3 %). Runs already done
 (``<out>/runs/<variant>_n<n>_s<seed>_t<steps>.json``) are kept, so a stopped benchmark resumes.
@@ -102,11 +103,15 @@ def run(
     changes: dict | None = None,
     tag: str = "",
 ) -> dict:
-    """Fit and test one run (``changes``: ``model`` settings over the config's); returns its record."""
+    """Fit and test one run (``changes``: ``model`` settings over the config's, ``data.*`` the data
+    module's); returns its record."""
     from torch_ampn.cli.train import main
 
     config = yaml.safe_load(CONFIG.read_text())
-    model = variant_model(variant, {**config["model"], **(changes or {})})
+    changes = changes or {}
+    data_changes = {k.removeprefix("data."): v for k, v in changes.items() if k.startswith("data.")}
+    model_changes = {k: v for k, v in changes.items() if not k.startswith("data.")}
+    model = variant_model(variant, {**config["model"], **model_changes})
     name = run_name(variant, tag)
     out = work / f"{name}_{data_dir.name}_s{seed}_t{steps}"
     config["seed_everything"] = seed
@@ -119,7 +124,7 @@ def run(
         if "dirpath" in callback.get("init_args", {}):
             callback["init_args"]["dirpath"] = str(out / "checkpoints")
     config["model"] = {**model, "output_dir": str(out / "report"), "export_xdmf": False}
-    config["data"].update(data_dir=str(data_dir), generate=False)
+    config["data"].update(data_dir=str(data_dir), generate=False, **data_changes)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "config.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -184,8 +189,9 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument(
-        "--set", nargs="*", default=[], metavar="KEY=VALUE", help="model settings over the config's (YAML)"
-    )
+        "--set", nargs="*", default=[], metavar="KEY=VALUE",
+        help="model settings over the config's (YAML); data.KEY=VALUE: the data module's",
+    )  # fmt: skip
     parser.add_argument("--tag", default="", help="name of the changed runs (required with --set)")
     parser.add_argument("--work", type=Path, default=Path("outputs/direct_runs"))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/direct"))

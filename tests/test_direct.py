@@ -276,6 +276,47 @@ def test_the_mean_base_as_an_input_is_the_float64_mean_at_the_chosen_steps(tiny_
         DirectSurrogate(base="initial", base_input=2)
 
 
+def _lifted_prior(traj, lift: float = 0.3):
+    """A prior of ``traj``: its positions, the plies moved by ``lift * t * (1, -0.5, 2)`` mm at step ``t``."""
+    prior = traj.pos.clone()
+    steps = torch.arange(prior.size(0), dtype=prior.dtype)[:, None, None]  # [T+1, 1, 1]
+    prior[:, traj.ply_mask] += lift * steps * torch.tensor([1.0, -0.5, 2.0], dtype=prior.dtype)
+    return prior
+
+
+def test_the_prior_base_departs_from_each_samples_prior(tiny_data):
+    """``base="prior"``: the target scale is the departure's spread; a zero output is the prior."""
+    train_trajs = list(TrajectoryDataset(tiny_data, "train"))
+    stems = [f.stem for f in TrajectoryDataset(tiny_data, "train").files]
+    lifts = [0.3 * (i + 1) for i in range(len(stems))]
+    priors = {s: _lifted_prior(t, a) for s, t, a in zip(stems, train_trajs, lifts, strict=True)}
+    torch.manual_seed(0)
+    model = DirectSurrogate(**SMALL, base="prior")
+    assert model.prior_features  # so that the data module, test and design supply the prior
+    train = DirectDataset(tiny_data, "train", max_levels=2, transform=model.contact, priors=priors)
+    for i in range(len(train)):
+        model.accumulate_statistics(train[i])
+    model.freeze_statistics()
+    departures = [  # float64 reference: truth minus prior on ply nodes, every step
+        (t.pos[1:].double() - priors[s][1:].double())[:, t.ply_mask].reshape(-1, 3)
+        for s, t in zip(stems, train_trajs, strict=True)
+    ]
+    spread = torch.cat(departures).std(0, correction=0)  # [3]
+    torch.testing.assert_close(model.target_norm.std.double(), spread, rtol=1e-5, atol=1e-9)
+
+    last = model.decoder.rest[-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    prior = _lifted_prior(traj, 0.7)
+    (pred,) = predict_direct(model.eval(), [dataclasses.replace(traj, prior=prior)], _hierarchy(traj))
+    ply = traj.ply_mask
+    torch.testing.assert_close(pred[1:, ply], prior[1:, ply].float(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(pred[:, ~ply], traj.pos[:, ~ply].float())
+    with pytest.raises(ValueError, match="no prior trajectory"):
+        predict_direct(model, [traj], _hierarchy(traj))
+
+
 def test_one_line_errors():
     with pytest.raises(ValueError, match="base must be one of"):
         DirectSurrogate(base="median")
@@ -401,3 +442,46 @@ def test_cli_fit_with_weight_averaging_test_predict_and_export_of_a_direct_model
     path = export([str(ckpt), str(tmp_path / "direct.pt")])
     loaded = DirectSurrogate.load(path)
     torch.testing.assert_close(predict_direct(loaded, [traj], _hierarchy(traj))[0], pred)
+
+
+@pytest.mark.xdist_group("tiny_fit")
+def test_cli_fit_test_and_design_of_a_direct_model_on_a_prior(tiny_data, tmp_path, capsys):
+    """``base: prior``, ``data.prior``: out-of-fold priors in training, the fitted one in test and design."""
+    import json
+
+    import yaml
+    from make_fixtures import fit_config
+
+    from torch_ampn.baselines.prior import fitted_prior
+    from torch_ampn.cli.design import main as design
+    from torch_ampn.cli.train import main
+    from torch_ampn.training import AMPNLightningModule
+
+    config_path, out = fit_config(tmp_path / "fit", tiny_data)
+    config = yaml.safe_load(config_path.read_text())
+    config["model"].update(mode="direct", loss_steps=3, base="prior")
+    config["data"].update(prior="mean_trajectory", prior_folds=2)
+    config["trainer"].update(max_steps=2, val_check_interval=2)
+    config_path.write_text(yaml.safe_dump(config))
+    main(["fit", "--config", str(config_path)])
+    ckpt = out / "ckpt" / "last.ckpt"
+    surrogate = AMPNLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval().surrogate
+    assert isinstance(surrogate, DirectSurrogate) and surrogate.base == "prior"
+
+    common = ["--data.data_dir", str(tiny_data), "--data.generate", "false", "--data.min_coarse_nodes", "4"]
+    common += ["--data.prior", "mean_trajectory", "--data.prior_folds", "2"]  # as in the fit
+    main(["test", "--ckpt_path", str(ckpt), *common, "--model.output_dir", str(out / "reports")])
+    summary = json.loads((out / "reports" / "test_summary.json").read_text())
+    traj = TrajectoryDataset(tiny_data, "test")[0]
+    prior = fitted_prior("mean_trajectory", list(TrajectoryDataset(tiny_data, "train")))  # the whole split
+    with_prior = dataclasses.replace(traj, prior=prior.predict(traj))
+    (pred,) = predict_direct(surrogate, [with_prior], _hierarchy(traj))
+    from torch_ampn.rollout import rollout_rmse
+
+    by_hand = float(rollout_rmse(pred, traj.pos, traj.ply_mask)[1:].mean())
+    assert summary["rollout_rmse"] == pytest.approx(by_hand, rel=1e-4)
+
+    budget = ["--maxiter", "1", "--popsize", "2", "--map-points", "3", "--top", "1"]
+    report = design([str(tiny_data), "--checkpoint", str(ckpt), "--measure", "draw_in_mean",
+                     "--out", str(tmp_path / "design"), *budget])  # fmt: skip
+    assert report["search"]["evaluations"] == 2 * 2 * 4

@@ -342,16 +342,23 @@ class StepDataset(torch.utils.data.Dataset):
         return data
 
 
-def direct_sample(traj: Trajectory, hierarchy: HierarchicalData) -> HierarchicalData:
+def direct_sample(traj: Trajectory, hierarchy: HierarchicalData, targets: bool = True) -> HierarchicalData:
     """The initial state of ``traj`` as a direct model's sample: the window at ``t = 1`` and every target.
 
     The fields of :func:`step_sample` at ``t = 1`` (initial positions, no previous motion, the
     grippers at :math:`t = 0`), and ``l0.displacement`` ``[N, T, 3]``: :math:`x^t - x^0` of every
     saved step ``t = 1..T`` (float32), the target of
-    :class:`~torch_ampn.forming.direct.DirectSurrogate`.
+    :class:`~torch_ampn.forming.direct.DirectSurrogate`. Where ``traj.prior`` is set, also
+    ``l0.prior_displacement`` ``[N, T, 3]``: the prior's :math:`p^t - x^0` (what a direct model
+    with ``base="prior"`` departs from). ``targets=False`` leaves ``displacement`` out: the
+    trajectory's future is then never read (a prediction's input).
     """
     data = step_sample(traj, 1, hierarchy)
-    data["l0"].displacement = (traj.pos[1:] - traj.pos[0]).transpose(0, 1).float().contiguous()
+    x0 = traj.pos[0]
+    if targets:
+        data["l0"].displacement = (traj.pos[1:] - x0).transpose(0, 1).float().contiguous()
+    if traj.prior is not None:
+        data["l0"].prior_displacement = (traj.prior[1:] - x0).transpose(0, 1).float().contiguous()
     return data
 
 

@@ -10,8 +10,9 @@ encoding of the normalised time). So one network pass predicts every saved step,
 study needs one pass per setting, and every prediction has the whole part's reach.
 
 The displacement is predicted as a departure from a base: the mean training displacement of
-every node and step (``base="mean"``, one mesh; the network learns the settings' effect) or
-the initial state (``base="initial"``, any mesh).
+every node and step (``base="mean"``, one mesh; the network learns the settings' effect), the
+initial state (``base="initial"``, any mesh) or a prior's prediction of the trajectory
+(``base="prior"``, e.g. POD + GP's; the network learns what the prior misses).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from torch_ampn.forming.normalizer import Normalizer
 from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, level_name
 from torch_ampn.nn.diffusion import RobinAMPN
 
-BASES = ("mean", "initial")
+BASES = ("mean", "initial", "prior")
 
 
 class TimeEncoding(nn.Module):
@@ -235,7 +236,11 @@ class DirectSurrogate(ModelFile, nn.Module):
         gripper_alpha: Distance decay of the gripper features.
         component_encoding: ``"onehot"`` or ``"stack"`` (see :func:`~torch_ampn.forming.component_features`).
         base: ``"mean"``: the output is added to the mean training displacement of every node and
-            step (one mesh, one step count); ``"initial"``: the output is the displacement.
+            step (one mesh, one step count); ``"initial"``: the output is the displacement;
+            ``"prior"``: the output is added to the displacement of the sample's prior trajectory
+            (``l0.prior_displacement`` of :func:`~torch_ampn.data.direct_sample`: the data
+            module's ``prior``, out of fold on the training split; :attr:`prior_features` is then
+            true, so that the data module, ``test`` and ``design`` supply it).
         time_frequencies: ``F`` of the time encoding.
         decoder_layers: Linear maps of the time decoder.
         loss_steps: Saved steps per trajectory in the training loss, drawn at random per batch
@@ -303,7 +308,8 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.num_levels = num_levels
         self.gripper_alpha = gripper_alpha
         self.component_encoding = component_encoding
-        self.prior_features = False
+        #: Whether the samples must carry a prior trajectory (``base="prior"``).
+        self.prior_features = base == "prior"
         self.base = base
         self.loss_steps = loss_steps
         self.contact = ComponentRadiusGraph(
@@ -388,7 +394,9 @@ class DirectSurrogate(ModelFile, nn.Module):
             self.edge_norm[rel].update(e)
         fine = data["l0"]
         disp = fine.displacement.transpose(0, 1)  # [T, N, 3]
-        if self.base == "initial":
+        if self.base == "prior":
+            disp = disp - self._prior(data).transpose(0, 1)  # the departure from the prior
+        if self.base in ("initial", "prior"):
             self.target_norm.update(disp[:, fine.ply_mask])
             return
         if self.base_norm is None:
@@ -545,8 +553,25 @@ class DirectSurrogate(ModelFile, nn.Module):
             out = out + self.modes(h, settings, t, batch)
         return out
 
+    @staticmethod
+    def _prior(data: HierarchicalData) -> Tensor:
+        """The prior's displacement of every ``l0`` node and saved step, ``[N_0, T, 3]``."""
+        fine = data["l0"]
+        if "prior_displacement" not in fine:
+            raise ValueError(
+                "base='prior': the sample has no prior trajectory (l0.prior_displacement); "
+                "set data.prior (e.g. pod_gp), or give the trajectories a prior"
+            )
+        return fine.prior_displacement.float()
+
     def _base(self, data: HierarchicalData, steps: Tensor) -> Tensor | None:
-        """The mean training displacement at ``steps`` (1-based) of every ``l0`` node ``[N_0, S, 3]``."""
+        """The base's displacement at ``steps`` (1-based) of every ``l0`` node ``[N_0, S, 3]``.
+
+        The mean training displacement (``base="mean"``), the sample's prior (``"prior"``), or
+        ``None`` (``"initial"``).
+        """
+        if self.base == "prior":
+            return self._prior(data)[:, steps - 1]
         if self.base != "mean":
             return None
         if self.base_norm is None:

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch
 
-from torch_ampn.data.dataset import step_sample
+from torch_ampn.data.dataset import direct_sample
 from torch_ampn.data.trajectory import Trajectory
 from torch_ampn.forming.direct import DirectSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
@@ -30,8 +30,8 @@ class _Inputs:
         self.shortcut = not surrogate.contact.static
 
     def __call__(self, traj: Trajectory) -> HierarchicalData:
-        """The initial-state sample of ``traj`` (its ground truth unused: no future is read)."""
-        data = step_sample(traj, 1, self.hierarchy)
+        """The initial-state sample of ``traj`` (with its prior's displacement, if any; no future is read)."""
+        data = direct_sample(traj, self.hierarchy, targets=False)
         if self.known is not None and torch.equal(self.known[0], traj.pos[0]):
             for level in range(data.num_levels):  # what the transform wrote: edge_index (edge_attr)
                 store = data.contact(level)

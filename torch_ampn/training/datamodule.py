@@ -479,10 +479,11 @@ class AMPNDataModule(L.LightningDataModule):
         wants_prior = bool(getattr(surrogate, "prior_features", False))
         if wants_prior != (self.hparams.get("prior") is not None):
             raise ValueError(
-                "model.prior_features needs data.prior (e.g. pod_gp)"
+                "the model reads a prior (model.prior_features, or a direct model's base: prior) and "
+                "needs data.prior (e.g. pod_gp)"
                 if wants_prior
-                else f"data.prior is {self.hparams.prior!r} but the model has no prior features "
-                "(set model.prior_features true)"
+                else f"data.prior is {self.hparams.prior!r} but the model reads no prior "
+                "(set model.prior_features true, or a direct model's model.base: prior)"
             )
         split = next((s for s in ("train", "val", "test") if split_files(self.data_dir, s)), None)
         if split is None:

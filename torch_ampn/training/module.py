@@ -167,7 +167,8 @@ class AMPNLightningModule(L.LightningModule):
             on whole trajectories, ``data.mode: direct``, which the CLI links; no rollout, no
             training noise). Validation, test, predict and design studies work with both.
         base: Direct mode: predict the departure from the mean training displacement
-            (``"mean"``, one mesh) or the displacement itself (``"initial"``).
+            (``"mean"``, one mesh), the displacement itself (``"initial"``) or the departure from
+            the data module's ``prior`` (``"prior"``, e.g. POD + GP's prediction; set ``data.prior``).
         time_frequencies: Direct mode: frequencies of the time encoding.
         decoder_layers: Direct mode: linear maps of the time decoder.
         loss_steps: Direct mode: random saved steps per batch in the loss (``None``: all).
