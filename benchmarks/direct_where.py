@@ -17,6 +17,7 @@ writes JSON.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -58,7 +59,14 @@ def main() -> None:
     pod_gp = fitted_prior("pod_gp", [train_set[i] for i in range(args.train)])
     ply = test[0].ply_mask
     truth = torch.stack([t.pos[-1, ply].double() for t in test])  # [K, P, 3]
-    direct = predict_direct(module.surrogate, test, dm.hierarchies(test[0]))
+    inputs = test
+    if module.surrogate.prior_features:  # base: prior; its prior is POD + GP on the same trajectories
+        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+        name = saved.get("datamodule_hyper_parameters", {}).get("prior")
+        if name != "pod_gp":
+            raise ValueError(f"{args.checkpoint}: the model reads the prior {name!r}; this script has pod_gp")
+        inputs = [dataclasses.replace(t, prior=pod_gp.predict(t)) for t in test]
+    direct = predict_direct(module.surrogate, inputs, dm.hierarchies(test[0]))
     predicted = {
         "direct": torch.stack([p[-1, ply].double() for p in direct]),
         "pod_gp": torch.stack([pod_gp.predict(t)[-1, ply].double() for t in test]),
