@@ -14,7 +14,8 @@ JSON (its date and machine are printed with it) instead of running it. Without `
 the direct model has the config's architecture and untrained weights (the cost is the same; so
 at the paper resolution, where a trained model's mean base does not fit the mesh); the time
 includes building each setting's input (features, contact edges of the initial state), not the
-hierarchy (once per mesh, printed). Prints a table and writes JSON.
+hierarchy (once per mesh, printed). ``--no-simulator`` times the direct model alone. Prints a
+table and writes JSON.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ def main() -> None:
     parser.add_argument("--settings", type=int, default=32)
     parser.add_argument("--batch", type=int, nargs="+", default=[4], help="settings per pass (several: each)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-simulator", action="store_true", help="time the direct model alone")
     parser.add_argument(
         "--paper-simulator-json", type=Path, default=Path("benchmarks/results/simulate_paper_v3.json")
     )
@@ -89,6 +91,10 @@ def main() -> None:
             "hierarchy_seconds_once_per_mesh": hierarchy_seconds,
             "weights": "trained" if checkpoint is not None else "untrained (the config's architecture)",
         }
+        if args.no_simulator:
+            rows.append(row)
+            print(json.dumps(row))
+            continue
         if resolution == "coarse":
             simulate_batch(cfg, [0, 1], settings=settings[:2], compile=True)  # compile, not counted
             start = time.perf_counter()
