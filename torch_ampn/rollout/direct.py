@@ -65,7 +65,8 @@ def predict_direct(
         trajectories: Their initial states, gripper settings and tool motion are used.
         hierarchy: The mesh's hierarchy.
         batch_size: Trajectories per network pass (4 is the fastest per trajectory on a 2-core
-            CPU with the coarse mesh: 29 ms against 36 with 8 and 45 with 16, 2026-12-06).
+            CPU with the coarse mesh: 28 ms against 31 with 1 or 8 and 35 with 16;
+            ``benchmarks/direct_speed.py``, 2026-12-06).
         device: Where to run (default: the surrogate's device).
         num_steps: Steps to predict (default: all).
         progress: A progress bar over the batches.
