@@ -13,7 +13,7 @@ predictor of their mean errs by at least that over sqrt 2 against one run). Prin
 writes JSON and a plot.
 
 ``--direct benchmarks/results/direct/table.json`` puts the direct model's runs of
-``benchmarks/direct.py`` beside it (the rows of ``--direct-variant``: mean and spread over
+``benchmarks/direct.py`` beside it (the rows of each ``--direct-variant``: mean and spread over
 seeds, one series per training-step count, the same curve fitted where a series has three sizes
 or more); those runs took the *first* ``n`` training trajectories, POD + GP random subsets.
 """
@@ -79,7 +79,7 @@ def write(out: Path, result: dict) -> None:
 
 
 def direct_series(table: Path, variant: str) -> list[dict]:
-    """The direct model's test RMSE per training-step count: ``[{steps, n, rmse_mean, rmse_std, seeds}]``."""
+    """A direct variant's test RMSE per training-step count: ``[{variant, steps, points, curve?}]``."""
     rows = [r for r in json.loads(table.read_text())["rows"] if r["variant"] == variant]
     if not rows:
         raise ValueError(f"{table}: field 'rows' has no run of variant {variant!r}")
@@ -87,6 +87,7 @@ def direct_series(table: Path, variant: str) -> list[dict]:
     for steps in sorted({r["steps"] for r in rows}):
         points = sorted((r for r in rows if r["steps"] == steps), key=lambda r: r["train"])
         entry: dict = {
+            "variant": variant,
             "steps": steps,
             "points": [
                 {
@@ -104,12 +105,22 @@ def direct_series(table: Path, variant: str) -> list[dict]:
     return series
 
 
+#: Legend names of the variants of ``benchmarks/direct.py`` (others: their own name).
+VARIANT_NAMES = {"direct_ampn": "direct model", "direct_ampn-prior": "direct model on POD + GP"}
+
+
+def series_label(series: dict) -> str:
+    """``direct model, 2,000 steps``: the variant's legend name and the series' step count."""
+    variant = series.get("variant", "direct_ampn")
+    return f"{VARIANT_NAMES.get(variant, variant)}, {series['steps']:,} steps"
+
+
 def report_direct(direct: list[dict]) -> None:
-    """Print the direct model's series."""
+    """Print the direct variants' series."""
     for series in direct:
         text = ", ".join(f"{p['n']}: {p['rmse_mean']:.3f}" for p in series["points"])
         fit = f"; levels off at {series['curve']['e_mm']:.3f} mm" if "curve" in series else ""
-        print(f"direct model, {series['steps']} steps: {text} mm{fit}")
+        print(f"{series_label(series)}: {text} mm{fit}")
 
 
 def plot(path: Path, result: dict) -> None:
@@ -131,7 +142,7 @@ def plot(path: Path, result: dict) -> None:
         xs = [p["n"] for p in series["points"]]
         ax.errorbar(
             xs, [p["rmse_mean"] for p in series["points"]], yerr=[p["rmse_std"] for p in series["points"]],
-            fmt="s", color=color, label=f"direct model, {series['steps']:,} steps",
+            fmt="s", color=color, label=series_label(series),
         )  # fmt: skip
         if "curve" in series:
             m = np.geomspace(min(xs), 800, 100)
@@ -161,12 +172,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spread", type=Path, default=None, help="JSON of torch-ampn-data spread --chaos")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--direct", type=Path, default=None, help="table.json of benchmarks/direct.py")
-    parser.add_argument("--direct-variant", default="direct_ampn")
+    parser.add_argument("--direct-variant", nargs="+", default=["direct_ampn"], help="variants to draw")
     parser.add_argument(
         "--replot", action="store_true", help="keep --out's POD + GP points; redo the direct series and plot"
     )
     args = parser.parse_args(argv)
-    direct = direct_series(args.direct, args.direct_variant) if args.direct else []
+    direct = [s for v in args.direct_variant for s in direct_series(args.direct, v)] if args.direct else []
     if args.replot:
         result = json.loads(args.out.read_text())
         result["direct"] = direct
