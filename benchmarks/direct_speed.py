@@ -91,28 +91,8 @@ def main() -> None:
             "hierarchy_seconds_once_per_mesh": hierarchy_seconds,
             "weights": "trained" if checkpoint is not None else "untrained (the config's architecture)",
         }
-        if args.no_simulator:
-            rows.append(row)
-            print(json.dumps(row))
-            continue
-        if resolution == "coarse":
-            simulate_batch(cfg, [0, 1], settings=settings[:2], compile=True)  # compile, not counted
-            start = time.perf_counter()
-            for i in range(0, len(settings), 16):
-                part = settings[i : i + 16]
-                simulate_batch(cfg, list(range(i, i + len(part))), settings=part, compile=True)
-            row["simulator_seconds_per_setting"] = (time.perf_counter() - start) / len(settings)
-            row["simulator_source"] = "measured here, side by side"
-        elif args.paper_simulator_json.is_file():
-            recorded = json.loads(args.paper_simulator_json.read_text())
-            runs = [r for r in recorded.get("results", []) if r.get("resolution") == "paper"]
-            per = [r.get("first_run_seconds_per_trajectory", r["seconds_per_trajectory"]) for r in runs]
-            if per:
-                meta = recorded.get("meta", {})
-                row["simulator_seconds_per_setting"] = min(per)
-                row["simulator_source"] = (
-                    f"{args.paper_simulator_json} ({meta.get('date', 'undated')}, {meta.get('device', '')})"
-                )
+        if not args.no_simulator:
+            row.update(simulator_time(resolution, cfg, settings, args.paper_simulator_json))
         if "simulator_seconds_per_setting" in row:
             row["speed_up"] = row["simulator_seconds_per_setting"] / direct
         rows.append(row)
@@ -132,6 +112,30 @@ def main() -> None:
                 f"{r['resolution']:<11}{r['nodes']:>8}{batch:>6}{seconds:>10.3f}{sim:>13.2f}"
                 f"{sim / seconds:>10.1f}"
             )
+
+
+def simulator_time(resolution: str, cfg: StampFormingConfig, settings: list, recorded_json: Path) -> dict:
+    """The simulator's seconds per setting and their source: measured (coarse) or from ``recorded_json``."""
+    if resolution == "coarse":
+        simulate_batch(cfg, [0, 1], settings=settings[:2], compile=True)  # compile, not counted
+        start = time.perf_counter()
+        for i in range(0, len(settings), 16):
+            part = settings[i : i + 16]
+            simulate_batch(cfg, list(range(i, i + len(part))), settings=part, compile=True)
+        seconds = (time.perf_counter() - start) / len(settings)
+        return {"simulator_seconds_per_setting": seconds, "simulator_source": "measured here, side by side"}
+    if not recorded_json.is_file():
+        return {}
+    recorded = json.loads(recorded_json.read_text())
+    runs = [r for r in recorded.get("results", []) if r.get("resolution") == "paper"]
+    per = [r.get("first_run_seconds_per_trajectory", r["seconds_per_trajectory"]) for r in runs]
+    if not per:
+        return {}
+    meta = recorded.get("meta", {})
+    return {
+        "simulator_seconds_per_setting": min(per),
+        "simulator_source": f"{recorded_json} ({meta.get('date', 'undated')}, {meta.get('device', '')})",
+    }
 
 
 def load_model(checkpoint: Path | None, cfg: StampFormingConfig):
