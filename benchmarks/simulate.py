@@ -1,12 +1,18 @@
-"""Benchmark: seconds per trajectory of the embedded simulator, coarse and paper resolution.
+"""Benchmark: seconds per trajectory of the embedded simulator at the coarse, the paper or any resolution.
 
     python benchmarks/simulate.py --out benchmarks/results/simulate_cpu.json
-    python benchmarks/simulate.py --physics v2 v3 --resolutions coarse --batch 4 --modes compiled \
+    python benchmarks/simulate.py --physics v2 v3 --resolutions coarse --batch 4 --modes compiled \\
         --out benchmarks/results/simulate_v2_v3.json                      # data versions side by side
     python benchmarks/simulate.py --device cuda --resolutions paper --batch 8 32 --modes compiled \\
         --out benchmarks/results/simulate_cuda.json                        # on a GPU
+    python benchmarks/simulate.py --resolutions coarse cells=24 --batch 4 --modes compiled \\
+        --out benchmarks/results/simulate_c24.json                         # a mesh 1.5 times finer
 
-For each resolution, simulates ``--batch`` trajectories at once, eager and compiled, and
+A resolution is ``coarse``, ``paper`` or ``cells=N``: the coarse config with ``N`` cells per
+ply edge and tool meshes refined in proportion (``N * 14 / 16`` punch and ``N`` die cells per
+side; ``cells=24`` is the mesh of ``torch-ampn-data generate --simulator
+'{"ply_cells": 24, "punch_cells": [21, 21], "die_cells": [24, 24]}'``). For each resolution,
+simulates ``--batch`` trajectories at once, eager and compiled, and
 prints seconds per trajectory. Compiled runs are done twice: the first includes
 ``torch.compile``'s work, the second finds inductor's on-disk cache warm (what a dataset
 generation with many batches sees). The cost of a trajectory is its number of explicit
@@ -38,6 +44,20 @@ def timed(
     # CPU results: synced
     trajs = simulate_batch(cfg, list(range(seed, seed + batch)), compile=compile_, device=device)
     return time.perf_counter() - t0, trajs[0].num_nodes, trajs[0].meta["substeps"]
+
+
+def resolution_config(name: str, overrides: dict) -> StampFormingConfig:
+    """The simulator config of ``coarse``, ``paper`` or ``cells=N`` (see the module docstring)."""
+    if name == "paper":
+        return StampFormingConfig.paper(**overrides)
+    if name == "coarse":
+        return StampFormingConfig(**overrides)
+    key, _, value = name.partition("=")
+    if key != "cells" or not value.isdigit() or int(value) < 2:
+        raise SystemExit(f"--resolutions: {name!r} is not coarse, paper or cells=N (N >= 2)")
+    n = int(value)
+    punch = round(n * 14 / 16)
+    return StampFormingConfig(ply_cells=n, punch_cells=(punch, punch), die_cells=(n, n), **overrides)
 
 
 def write_json(path: Path, payload: dict) -> None:
@@ -76,7 +96,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for res, physics in ((r, p) for r in args.resolutions for p in args.physics):
         overrides = PHYSICS_V2 if physics == "v2" else {}
-        cfg = StampFormingConfig.paper(**overrides) if res == "paper" else StampFormingConfig(**overrides)
+        cfg = resolution_config(res, overrides)
         for batch in args.batch:
             for mode in args.modes:
                 compile_ = mode == "compiled"
