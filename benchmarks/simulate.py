@@ -9,8 +9,8 @@
         --out benchmarks/results/simulate_c24.json                         # a mesh 1.5 times finer
 
 A resolution is ``coarse``, ``paper`` or ``cells=N``: the coarse config with ``N`` cells per
-ply edge and tool meshes refined in proportion (``N * 14 / 16`` punch and ``N`` die cells per
-side; ``cells=24`` is the mesh of ``torch-ampn-data generate --simulator
+ply edge and the tool meshes' cells scaled by the same factor (``cells=24`` is the mesh of
+``torch-ampn-data generate --simulator
 '{"ply_cells": 24, "punch_cells": [21, 21], "die_cells": [24, 24]}'``). For each resolution,
 simulates ``--batch`` trajectories at once, eager and compiled, and
 prints seconds per trajectory. Compiled runs are done twice: the first includes
@@ -55,9 +55,14 @@ def resolution_config(name: str, overrides: dict) -> StampFormingConfig:
     key, _, value = name.partition("=")
     if key != "cells" or not value.isdigit() or int(value) < 2:
         raise SystemExit(f"--resolutions: {name!r} is not coarse, paper or cells=N (N >= 2)")
-    n = int(value)
-    punch = round(n * 14 / 16)
-    return StampFormingConfig(ply_cells=n, punch_cells=(punch, punch), die_cells=(n, n), **overrides)
+    coarse, n = StampFormingConfig(), int(value)
+
+    def scaled(cells: tuple[int, int]) -> tuple[int, int]:
+        return tuple(round(c * n / coarse.ply_cells) for c in cells)  # type: ignore[return-value]
+
+    return StampFormingConfig(
+        ply_cells=n, punch_cells=scaled(coarse.punch_cells), die_cells=scaled(coarse.die_cells), **overrides
+    )
 
 
 def write_json(path: Path, payload: dict) -> None:
