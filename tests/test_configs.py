@@ -132,8 +132,30 @@ def test_lightning_save_last_alone_lags_behind(tmp_path):
     assert checkpoint_steps([callback], tmp_path) == (2, 2)
 
 
-def test_the_main_jobs_configs_add_the_prior_to_the_quickstart(tmp_path, monkeypatch):
-    """scripts/quickstart.sh: quickstart.yaml, then quickstart_prior.yaml on top of it."""
+def test_the_main_jobs_configs_are_the_direct_model_without_message_passing(tmp_path, monkeypatch):
+    """scripts/quickstart.sh: direct.yaml, then quickstart_direct.yaml on top of it."""
+    from torch_geometric.nn import MessagePassing
+
+    monkeypatch.chdir(tmp_path)
+    names = ["direct.yaml", "quickstart_direct.yaml"]
+    cli = main([a for name in names for a in ("--config", str(CONFIGS / name))], run=False)
+    direct, extra = (yaml.safe_load((CONFIGS / name).read_text()) for name in names)
+    hp = cli.model.hparams
+    assert hp.mode == "direct" and hp.num_levels == 1
+    assert hp.pre_layers == hp.solve_layers == hp.post_layers == 0
+    assert not any(isinstance(m, MessagePassing) for m in cli.model.surrogate.modules())
+    for key in ("hidden_channels", "decoder_modes", "base", "lr", "loss_steps"):
+        assert hp[key] == direct["model"][key]  # the rest is direct.yaml's
+    assert cli.trainer.max_steps == extra["trainer"]["max_steps"]
+    assert cli.datamodule.hparams.num_train == direct["data"]["num_train"]
+    # everything it writes lands in outputs/quickstart, as the job says
+    checkpoints = [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
+    assert {Path(c.dirpath) for c in checkpoints} == {tmp_path / "outputs/quickstart/checkpoints"}
+    assert hp.output_dir == "outputs/quickstart" and cli.trainer.default_root_dir == "outputs/quickstart"
+
+
+def test_the_prior_recipe_adds_the_prior_to_the_quickstart(tmp_path, monkeypatch):
+    """The next-step recipe with the POD + GP prior: quickstart.yaml, then quickstart_prior.yaml."""
     monkeypatch.chdir(tmp_path)
     names = ["quickstart.yaml", "quickstart_prior.yaml"]
     args = [a for name in names for a in ("--config", str(CONFIGS / name))]

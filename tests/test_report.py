@@ -10,9 +10,11 @@ def _summary(model, trivial, aware=None):
     return out
 
 
-def test_verdict_is_silent_when_the_model_beats_every_baseline():
-    assert verdict(_summary(0.2, 3.0, 0.3)) == []
-    assert verdict(_summary(0.2, 3.0)) == []
+def test_verdict_says_plainly_when_the_model_beats_every_baseline():
+    (line,) = verdict(_summary(0.2, 3.0, 0.3))
+    assert line.startswith("RESULT: the model (0.2000 mm) beats") and "pod_gp (0.3000 mm)" in line
+    assert "0.67 times its error" in line  # 0.2 / 0.3
+    assert verdict(_summary(0.2, 3.0)) == []  # no setting-aware baseline: nothing more to say
 
 
 def test_verdict_names_each_baseline_the_model_does_not_beat():
@@ -22,6 +24,8 @@ def test_verdict_names_each_baseline_the_model_does_not_beat():
     assert len(lines) == 2 and "trivial baseline (3.9700 mm)" in lines[0]
     # a tie is not a win
     assert len(verdict(_summary(0.5, 0.5))) == 1
+    (line,) = verdict(_summary(0.3, 3.0, 0.3))
+    assert line.startswith("WARNING:")
 
 
 def test_shortfall_line_only_when_a_fit_ends_before_its_planned_steps():

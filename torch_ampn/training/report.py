@@ -29,10 +29,12 @@ def _figure():
 
 
 def verdict(summary: dict[str, float | str]) -> list[str]:
-    """One ``WARNING`` line for each baseline of a test summary that the model does not beat.
+    """The end of a test in plain words: one ``WARNING`` line for each baseline the model does not beat.
 
     Checked: the best trivial baseline (``baseline_rmse``) and, where reported, the best
-    setting-aware one (``setting_baseline_rmse``). An empty list when the model beats both.
+    setting-aware one (``setting_baseline_rmse``, e.g. POD + GP). When the model beats the
+    setting-aware baseline, one ``RESULT`` line says so, with the ratio of the errors; when it
+    beats the trivial one and no setting-aware baseline is reported, the list is empty.
     """
     model = float(summary["rollout_rmse"])
     lines = []
@@ -41,12 +43,19 @@ def verdict(summary: dict[str, float | str]) -> list[str]:
             f"WARNING: the model ({model:.4f} mm) tests no better than the best trivial baseline "
             f"({float(summary['baseline_rmse']):.4f} mm), which ignores the training data"
         )
-    if "setting_baseline_rmse" in summary and model >= float(summary["setting_baseline_rmse"]):
-        lines.append(
-            f"WARNING: the model ({model:.4f} mm) tests no better than the setting-aware baseline "
-            f"{summary['setting_baseline']} ({float(summary['setting_baseline_rmse']):.4f} mm), "
-            "built from the same training trajectories"
-        )
+    if "setting_baseline_rmse" in summary:
+        aware, name = float(summary["setting_baseline_rmse"]), summary["setting_baseline"]
+        if model >= aware:
+            lines.append(
+                f"WARNING: the model ({model:.4f} mm) tests no better than the setting-aware baseline "
+                f"{name} ({aware:.4f} mm), built from the same training trajectories"
+            )
+        else:
+            lines.append(
+                f"RESULT: the model ({model:.4f} mm) beats the best setting-aware baseline {name} "
+                f"({aware:.4f} mm), built from the same training trajectories: "
+                f"{model / aware:.2f} times its error"
+            )
     return lines
 
 
