@@ -9,7 +9,7 @@ import torch
 from torch_ampn.data import DirectDataset, HierarchyCache, TrajectoryDataset
 from torch_ampn.forming.direct import DirectSurrogate, ModeDecoder, TimeEncoding
 from torch_ampn.rollout.direct import predict_direct
-from torch_ampn.rollout.surrogate import rollout_surrogate
+from torch_ampn.rollout.surrogate import rollout, rollout_surrogate
 
 SMALL = dict(
     hidden_channels=16, mlp_channels=16, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
@@ -73,6 +73,9 @@ def test_batches_predict_what_single_settings_do_and_the_future_is_never_read(ti
     # rollout_surrogate, the path of test/predict/design, takes the direct one
     (routed,) = rollout_surrogate(model, [trajs[0]], h, [None], batch_size=4)
     torch.testing.assert_close(routed, alone[0])
+    # ... and so does rollout, the tour's call, on either path, whole or cut short
+    torch.testing.assert_close(rollout(model, trajs[0], h, fast=True), alone[0])
+    torch.testing.assert_close(rollout(model, trajs[0], h, num_steps=2), alone[0][:3])
     from torch_ampn.design import surrogate_predictor
 
     finals = surrogate_predictor(model, h, batch_size=2, final=True)(trajs)  # the design search's path

@@ -119,8 +119,13 @@ def rollout(
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state.
 
+    A :class:`~torch_ampn.forming.direct.DirectSurrogate` (the main job's model) is not rolled
+    out: it predicts every step in one pass (:func:`~torch_ampn.rollout.direct.predict_direct`;
+    ``contact``, ``fast``, ``generator`` and ``compile`` do not apply), with the same result shape.
+
     Args:
-        predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm.
+        predictor: ``HierarchicalData -> [N, 3]`` residual of every fine node, in mm, or a direct
+            surrogate.
         traj: The trajectory: its initial state, mesh, gripper settings and tool motion are
             used; its ply positions after step 0 are never read.
         hierarchy: The hierarchy of ``traj``'s mesh (e.g. from
@@ -142,6 +147,8 @@ def rollout(
     Returns:
         Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
     """
+    if isinstance(predictor, DirectSurrogate):
+        return predict_direct(predictor, [traj], hierarchy, device=device, num_steps=num_steps)[0]
     if not fast:
         return rollout_plain(predictor, traj, hierarchy, contact, num_steps, device, progress)
     if not isinstance(predictor, AMPNSurrogate):
