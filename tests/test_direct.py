@@ -43,6 +43,41 @@ def test_the_mean_base_and_the_target_scale_match_a_float64_reference(tiny_data)
     torch.testing.assert_close(model.target_norm.std, spread.square().mean(0).sqrt(), rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("target_scale", ["step", "node_step"])
+def test_step_scales_are_the_float64_spread_about_the_mean_and_scale_output_and_loss(tiny_data, target_scale):
+    model, train = _fitted(tiny_data, target_scale=target_scale)
+    disp = torch.stack([t.pos[1:].double() - t.pos[0].double() for t in train.trajectories])  # [K, T, N, 3]
+    var = (disp - disp.mean(0)).square().mean(0)  # [T, N, 3], population variance over the samples
+    if target_scale == "step":
+        var = var.mean(1, keepdim=True).expand_as(var)  # every node of a step alike
+    floor = 1e-2 * var.mean((0, 1)).sqrt()
+    expected = (var + floor.square()).sqrt().transpose(0, 1)  # [N, T, 3]
+    steps = torch.arange(1, disp.size(1) + 1)
+    sample = train[0]
+    scale = model._departure_scale(sample, steps)
+    torch.testing.assert_close(scale.double(), expected, rtol=1e-5, atol=1e-9)
+    if target_scale == "step":  # early steps, where the settings have moved little, get a small scale
+        assert scale[0, 0].norm() < scale[0, -1].norm()
+    # the output is in units of the scale: an output of ones moves every node by its scale
+    model._decode = lambda data, h, t, mask=None, base=None: torch.ones(  # noqa: ARG005
+        int(mask.sum()) if mask is not None else data["l0"].num_nodes, t.numel(), 3
+    )
+    pred = model.predict_displacement(sample, disp.size(1))
+    torch.testing.assert_close(pred, model._base(sample, steps) + scale)
+    # ... and the loss is the MSE of (output - departure / scale) over the ply nodes
+    ply = sample["l0"].ply_mask
+    departure = (sample["l0"].displacement.double() - model._base(sample, steps).double())[ply]
+    reference = (1 - departure / expected[ply]).square().mean()
+    torch.testing.assert_close(model.loss(sample).double(), reference, rtol=1e-4, atol=1e-7)
+
+
+def test_step_scales_need_the_mean_base():
+    with pytest.raises(ValueError, match="target_scale must be one of"):
+        DirectSurrogate(base="initial", target_scale="step")
+    with pytest.raises(ValueError, match="target_scale must be one of"):
+        DirectSurrogate(target_scale="per_node")
+
+
 def test_a_zero_output_predicts_the_mean_training_trajectory_and_the_tools_prescribed_motion(tiny_data):
     model, train = _fitted(tiny_data)
     last = model.decoder.rest[-1]

@@ -35,6 +35,7 @@ from torch_ampn.hierarchy.hierarchical_data import RELATIONS, HierarchicalData, 
 from torch_ampn.nn.diffusion import RobinAMPN
 
 BASES = ("mean", "initial", "prior")
+TARGET_SCALES = ("global", "step", "node_step")
 
 
 class TimeEncoding(nn.Module):
@@ -257,6 +258,12 @@ class DirectSurrogate(ModelFile, nn.Module):
         mode_layers: Linear maps of the coefficient MLP.
         space_time_modes: The modes are functions of the node and the time, their coefficients
             of the settings alone (POD + GP's form; see :class:`ModeDecoder`).
+        target_scale: The scale of the departure from the base that the network's output is in:
+            ``"global"``, one per axis; with ``base="mean"`` also ``"step"``, the training spread
+            about the mean at each saved step and axis, so that the early steps, where the
+            settings have moved the plies little yet, are fitted as closely as the late ones; or
+            ``"node_step"``, each node's, step's and axis' spread (floored at 1 % of the global
+            one): the settings' effect is then learned where the training data show one.
         base_input: With ``base="mean"``: every fine node reads the mean training displacement
             at this many evenly spaced saved steps (the last among them), and the time decoder
             reads it at the asked time; where the mean part ends up (the tools' imprint on it)
@@ -287,6 +294,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         mode_layers: int = 3,
         space_time_modes: bool = False,
         base_input: int = 0,
+        target_scale: str = "global",
         **network: Any,
     ) -> None:
         super().__init__()
@@ -301,6 +309,11 @@ class DirectSurrogate(ModelFile, nn.Module):
             raise ValueError(
                 f"base_input must be 0, or >= 1 with base='mean'; got {base_input} with {base!r}"
             )
+        if target_scale not in TARGET_SCALES or (target_scale != "global" and base != "mean"):
+            raise ValueError(
+                f"target_scale must be one of {TARGET_SCALES} ('step' and 'node_step' with base='mean'); "
+                f"got {target_scale!r} with {base!r}"
+            )
         from torch_ampn.transforms.contact import ComponentRadiusGraph
 
         self.num_components = num_components
@@ -311,6 +324,7 @@ class DirectSurrogate(ModelFile, nn.Module):
         #: Whether the samples must carry a prior trajectory (``base="prior"``).
         self.prior_features = base == "prior"
         self.base = base
+        self.target_scale = target_scale
         self.loss_steps = loss_steps
         self.contact = ComponentRadiusGraph(
             contact_radius, contact_k, num_components=num_components, mode=contact_mode, positions="initial"
@@ -586,6 +600,23 @@ class DirectSurrogate(ModelFile, nn.Module):
         mean = self.base_norm.running_mean.reshape(num_steps, nodes, 3).float()[steps - 1]  # [S, N, 3]
         return mean.transpose(0, 1).repeat(n // nodes, 1, 1)  # [N_0, S, 3]
 
+    def _departure_scale(self, data: HierarchicalData, steps: Tensor) -> Tensor | None:
+        """The ``step`` or ``node_step`` scale of the departure at ``steps`` (1-based), ``[N_0, S, 3]``.
+
+        The training spread about the mean base (from its statistics); ``None`` for ``"global"``.
+        """
+        if self.target_scale == "global":
+            return None
+        if self.base_norm is None:
+            raise RuntimeError("the mean base is unknown: accumulate and freeze the statistics first")
+        num_steps, nodes = self.base_shape
+        var = self.base_norm.running_m2.reshape(num_steps, nodes, 3) / self.base_norm.count.clamp_min(1)
+        if self.target_scale == "step":  # the mean over nodes (tool nodes, fixed, only scale it)
+            var = var.mean(1, keepdim=True).expand(num_steps, nodes, 3)
+        floor = 1e-2 * var.mean((0, 1)).sqrt()  # [3]: 1 % of the global spread
+        scale = (var + floor.square()).sqrt().float()[steps - 1]  # [S, N, 3]
+        return scale.transpose(0, 1).repeat(data["l0"].num_nodes // nodes, 1, 1)  # [N_0, S, 3]
+
     def _check_steps(self, num_steps: int) -> None:
         if self.base == "mean" and num_steps != self.base_shape[0]:
             raise ValueError(
@@ -606,9 +637,9 @@ class DirectSurrogate(ModelFile, nn.Module):
         device = data["l0"].pos.device
         steps = torch.arange(1, num_steps + 1, device=device) if steps is None else steps.to(device)
         base = self._base(data, steps)
-        out = self.target_norm.denormalize(
-            self._decode(data, self.latent(data), steps / num_steps, base=base)
-        )
+        out = self._decode(data, self.latent(data), steps / num_steps, base=base)
+        scale = self._departure_scale(data, steps)
+        out = self.target_norm.denormalize(out) if scale is None else out * scale
         return out if base is None else out + base
 
     def loss(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
@@ -626,8 +657,13 @@ class DirectSurrogate(ModelFile, nn.Module):
         if base is not None:
             target = target - base[ply]
         out = self._decode(data, self.latent(data), steps / num_steps, ply, base)  # [N_ply, S, 3]
-        return (out - self.target_norm(target)).square().mean()
+        scale = self._departure_scale(data, steps)
+        target = self.target_norm(target) if scale is None else target / scale[ply]
+        return (out - target).square().mean()
 
     def extra_repr(self) -> str:
         """Data sizes shown by ``repr``."""
-        return f"num_components={self.num_components}, num_grippers={self.num_grippers}, base={self.base!r}"
+        return (
+            f"num_components={self.num_components}, num_grippers={self.num_grippers}, base={self.base!r}, "
+            f"target_scale={self.target_scale!r}"
+        )

@@ -88,6 +88,7 @@ DIRECT_ARGUMENTS = (
     "mode_layers",
     "space_time_modes",
     "base_input",
+    "target_scale",
 )
 
 #: Next-step settings a direct model has no use for, with the values that mean "off".
@@ -184,6 +185,9 @@ class AMPNLightningModule(L.LightningModule):
             settings alone (POD + GP's form).
         base_input: Direct mode, ``base: mean``: the nodes read the mean training displacement at
             this many evenly spaced steps and the decoder at the asked time (0: neither).
+        target_scale: Direct mode: the scale of the network's output, ``"global"``, or with
+            ``base: mean`` the training spread at each step (``"step"``) or node and step
+            (``"node_step"``; :class:`~torch_ampn.forming.direct.DirectSurrogate`).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -282,6 +286,7 @@ class AMPNLightningModule(L.LightningModule):
         mode_layers: int = 3,
         space_time_modes: bool = False,
         base_input: int = 0,
+        target_scale: str = "global",
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
