@@ -143,6 +143,7 @@ def test_the_main_jobs_configs_are_the_direct_model_without_message_passing(tmp_
     hp = cli.model.hparams
     assert hp.mode == "direct" and hp.num_levels == 1
     assert hp.pre_layers == hp.solve_layers == hp.post_layers == 0
+    assert cli.model.surrogate.target_scale == "step"
     assert not any(isinstance(m, MessagePassing) for m in cli.model.surrogate.modules())
     for key in ("hidden_channels", "decoder_modes", "base", "lr", "loss_steps"):
         assert hp[key] == direct["model"][key]  # the rest is direct.yaml's
