@@ -2,6 +2,7 @@
 
     python examples/step_predictability.py data/default/test [--every 5]
     python examples/step_predictability.py data/default/test --ckpt outputs/quickstart/checkpoints/best.ckpt
+        (a next-step model's checkpoint: `torch-ampn fit --config examples/configs/quickstart.yaml`)
 
 For every step t of the trajectories in a folder, over ply nodes, averaged over trajectories:
 
@@ -94,6 +95,11 @@ def main() -> None:
         if not args.ckpt.is_file():
             raise SystemExit(f"{args.ckpt}: no such checkpoint")
         module = AMPNLightningModule.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
+        if not hasattr(module.surrogate, "predict_residual"):
+            raise SystemExit(
+                f"{args.ckpt}: model.mode {module.hparams.mode!r} predicts no next step; give a next-step "
+                "model's checkpoint (e.g. from examples/configs/quickstart.yaml)"
+            )
         hierarchies = HierarchyCache(
             args.folder.parent / "cache",
             max_levels=module.surrogate.num_levels,
