@@ -44,12 +44,25 @@ def test_the_script_still_simulates_the_committed_dataset(tmp_path, make, commit
     )
     for name in made:
         a, b = Trajectory.load(folder / name), Trajectory.load(committed_dir / name)
+        energy_a, energy_b = a.meta.pop("energy"), b.meta.pop("energy")  # [T] per term
         assert a.meta == b.meta and a.names == b.names, name
         for field in ("component", "node_type", "gripper_nodes", "gripper_force", "time", "fiber"):
             assert torch.equal(getattr(a, field), getattr(b, field)), (name, field)
-        # the eager solver repeats itself to rounding on one CPU; other CPUs round other ways
-        torch.testing.assert_close(a.pos, b.pos, rtol=0, atol=1e-4, msg=str(name))
-        assert float((a.pos[-1] - a.pos[0]).abs().max()) > 1.0  # the plies move: a real comparison
+        # The eager solver repeats itself to rounding on one CPU. Other CPUs round other ways, and
+        # the plies' contact amplifies those differences (chaos): on an Intel Xeon the fixtures
+        # made on an AMD EPYC agree to float32 up to saved step 2 and by up to 10 mm at the end.
+        # So the first half of the steps (the plies have moved 17-22 mm by then) is compared to
+        # rounding, and the whole forming to a few percent of the motion.
+        early = a.pos.size(0) // 2
+        torch.testing.assert_close(a.pos[:early], b.pos[:early], rtol=0, atol=1e-3, msg=str(name))
+        assert float((a.pos[early - 1] - a.pos[0]).abs().max()) > 1.0  # the plies move: a real comparison
+        assert energy_a.keys() == energy_b.keys(), name
+        for term in energy_a:
+            ea, eb = (torch.tensor(e[term][:early], dtype=torch.float64) for e in (energy_a, energy_b))
+            torch.testing.assert_close(ea, eb, rtol=1e-6, atol=1e-9, msg=f"{name}: energy {term}")
+        motion = (b.pos[-1] - b.pos[0]).double().pow(2).sum(-1).mean().sqrt()  # RMS, mm
+        final_gap = (a.pos[-1] - b.pos[-1]).double().pow(2).sum(-1).mean().sqrt()
+        assert final_gap < 0.1 * motion, (name, float(final_gap), float(motion))
 
 
 @pytest.mark.xdist_group("tiny_fit")
