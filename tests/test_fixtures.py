@@ -50,11 +50,11 @@ def test_the_script_still_simulates_the_committed_dataset(tmp_path, make, commit
             assert torch.equal(getattr(a, field), getattr(b, field)), (name, field)
         # The eager solver repeats itself to rounding on one CPU. Other CPUs round other ways, and
         # the plies' contact amplifies those differences (chaos): on an Intel Xeon the fixtures
-        # made on an AMD EPYC agree to float32 up to saved step 2 and by up to 10 mm at the end.
+        # made on an AMD EPYC agree to float32 up to saved step 2 and differ by up to 10 mm at the end.
         # So the first half of the steps (the plies have moved 17-22 mm by then) is compared to
         # rounding, and the whole forming to a few percent of the motion.
         early = a.pos.size(0) // 2
-        torch.testing.assert_close(a.pos[:early], b.pos[:early], rtol=0, atol=1e-3, msg=str(name))
+        torch.testing.assert_close(a.pos[:early], b.pos[:early], rtol=0, atol=1e-4, msg=str(name))
         assert float((a.pos[early - 1] - a.pos[0]).abs().max()) > 1.0  # the plies move: a real comparison
         assert energy_a.keys() == energy_b.keys(), name
         for term in energy_a:
