@@ -1,6 +1,9 @@
 """Contact edges (component kNN within a radius) against an independent brute-force reference."""
 
+import logging
 import math
+import os
+import shutil
 
 import numpy as np
 import pytest
@@ -204,7 +207,7 @@ def test_single_component_and_empty_input():
     pos, _ = random_cloud(50, 1, seed=0)
     nbr, mask = component_radius_table(pos, torch.zeros(50, dtype=torch.long), 1.0, 3)
     assert nbr.shape == (50, 0) and mask.shape == (50, 0)
-    assert component_radius_graph(pos, torch.zeros(50, dtype=torch.long)).shape == (2, 0)
+    assert component_radius_graph(pos, torch.zeros(50, dtype=torch.long), r=1.0).shape == (2, 0)
     nbr, mask = component_radius_table(
         torch.empty(0, 3), torch.empty(0, dtype=torch.long), 1.0, 2, num_components=3
     )
@@ -386,7 +389,7 @@ def test_transform_level_radius_scale():
     with pytest.raises(ValueError, match="level_radius_scale has 2 entries"):
         ComponentRadiusGraph(r=0.6, level_radius_scale=[1.0, 2.0])(h)
     with pytest.raises(ValueError, match="level_radius_scale"):
-        ComponentRadiusGraph(level_radius_scale=[1.0, -2.0])
+        ComponentRadiusGraph(r=0.6, level_radius_scale=[1.0, -2.0])
 
 
 def test_transform_on_a_batch_equals_the_single_results():
@@ -417,8 +420,8 @@ def test_transform_static_tables_and_repr():
         nbr, mask = out.level(level).contact_nbr, out.level(level).contact_mask
         assert nbr.shape == mask.shape == (out.level(level).num_nodes, 2 * 2)
         assert torch.equal(table_to_edge_index(nbr, mask), out.contact(level).edge_index)
-    assert repr(ComponentRadiusGraph()) == (
-        "ComponentRadiusGraph(r=3.0, k=3, level_radius_scale=None, num_components=None, "
+    assert repr(ComponentRadiusGraph(r=0.25)) == (
+        "ComponentRadiusGraph(r=0.25, k=3, level_radius_scale=None, num_components=None, "
         "static=False, backend='auto', merge_levels=False, mode='component_knn', positions='current', "
         "edge_features=False)"
     )
@@ -439,9 +442,9 @@ def test_transform_radius_mode_links_every_pair_within_r_on_every_level():
         assert ei.size(1) >= knn.contact(level).edge_index.size(1)
     assert out.contact(0).edge_index.size(1) > knn.contact(0).edge_index.size(1)  # same-component pairs too
     with pytest.raises(ValueError, match="mode"):
-        ComponentRadiusGraph(mode="knn")
+        ComponentRadiusGraph(r=0.9, mode="knn")
     with pytest.raises(ValueError, match="fixed-size"):
-        ComponentRadiusGraph(mode="radius", static=True)
+        ComponentRadiusGraph(r=0.9, mode="radius", static=True)
 
 
 def test_transform_initial_positions_give_the_same_edges_at_every_state():
@@ -459,7 +462,7 @@ def test_transform_initial_positions_give_the_same_edges_at_every_state():
     changed = [not torch.equal(current(moved).contact(k).edge_index, first[k]) for k in range(h.num_levels)]
     assert any(changed)
     with pytest.raises(ValueError, match="positions"):
-        ComponentRadiusGraph(positions="start")
+        ComponentRadiusGraph(r=0.9, positions="start")
     with pytest.raises(ValueError, match="pos0"):
         static(_hierarchy())
 
@@ -468,9 +471,9 @@ def test_transform_needs_positions_and_components():
     h = _hierarchy()
     del h["l0"].component
     with pytest.raises(ValueError, match="component"):
-        ComponentRadiusGraph()(h)
+        ComponentRadiusGraph(r=0.9)(h)
     with pytest.raises(ValueError, match="HierarchicalData"):
-        ComponentRadiusGraph()(torch.zeros(3))
+        ComponentRadiusGraph(r=0.9)(torch.zeros(3))
 
 
 # ---- validation -------------------------------------------------------------------------------
@@ -522,11 +525,17 @@ def test_bad_input_plain_and_transform():
     with pytest.raises(ValueError, match="NaN"):
         plain_radius_graph(torch.full((4, 3), float("nan")), r=1.0)
     with pytest.raises(ValueError, match="k must be an integer >= 1"):
-        ComponentRadiusGraph(k=0)
+        ComponentRadiusGraph(r=1.0, k=0)
     with pytest.raises(ValueError, match="r must be positive"):
         ComponentRadiusGraph(r=-3.0)
+    with pytest.raises(TypeError, match="'r'"):  # no default radius: it depends on the mesh's units
+        ComponentRadiusGraph()
+    with pytest.raises(TypeError, match="'r'"):
+        component_radius_graph(GOOD_POS, GOOD_COMP)
+    with pytest.raises(TypeError, match="'r'"):
+        component_radius_table(GOOD_POS, GOOD_COMP, k=2)
     with pytest.raises(ValueError, match="backend must be one of"):
-        ComponentRadiusGraph(backend="nope")
+        ComponentRadiusGraph(r=1.0, backend="nope")
     with pytest.raises(ValueError, match="equal shape"):
         table_to_edge_index(torch.zeros(3, 2, dtype=torch.long), torch.zeros(3, 1, dtype=torch.bool))
 
@@ -587,7 +596,7 @@ def test_auto_is_the_native_search_on_the_cpu_and_explicit_backends_agree(auto_b
     with pytest.raises(ValueError, match="backend='native' is not implemented"):
         plain_radius_graph(pos, 0.5, backend="native")
     with pytest.raises(ValueError, match="mode='radius' has no native search"):
-        ComponentRadiusGraph(mode="radius", backend="native")
+        ComponentRadiusGraph(r=1.0, mode="radius", backend="native")
 
 
 def test_native_search_with_coarser_cells_than_the_radius(monkeypatch, auto_backend):
@@ -625,5 +634,46 @@ def test_without_a_c_compiler_auto_falls_back_to_the_grid(monkeypatch, tmp_path,
         native._library.cache_clear()
         assert native.native_available()
         assert len(list((tmp_path / "cache").glob("ampn_native_*.so"))) == 1
+    finally:
+        native._library.cache_clear()
+
+
+def test_no_compile_switch_takes_the_grid_and_compiles_nothing(monkeypatch, tmp_path, caplog, auto_backend):
+    """``TORCH_AMPN_NO_COMPILE=1``: no compiler run and the brute-force tables; a build is logged once."""
+    import torch_ampn.transforms._checks as checks
+    import torch_ampn.transforms._native as native
+
+    if auto_backend == "grid":
+        pytest.skip("the native search is switched off in this pass")
+    runs = []
+    real_run = native.subprocess.run
+    monkeypatch.setattr(native.subprocess, "run", lambda *args, **kwargs: runs.append(args))
+    monkeypatch.setenv("TORCH_AMPN_NO_COMPILE", "1")
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("TORCH_AMPN_CACHE", str(cache))
+    pos, comp = random_cloud(300, 4, seed=21, lattice=0.25)
+    batch = (torch.arange(300) >= 120).long()
+    expected = reference_table(pos, comp, 0.7, 3, 4, batch=batch.numpy())
+    caplog.set_level(logging.INFO, logger=native.__name__)
+    native._library.cache_clear()
+    try:
+        assert not native.native_available() and checks.check_backend("auto", torch.device("cpu")) == "grid"
+        pure = component_radius_table(pos, comp, 0.7, 3, batch=batch)
+        assert_table(pure, expected)
+        with pytest.raises(ValueError, match="TORCH_AMPN_NO_COMPILE=1"):
+            component_radius_table(pos, comp, 0.7, 3, backend="native")
+        assert runs == [] and not cache.exists()
+        assert not [rec for rec in caplog.records if rec.name == native.__name__]  # nothing to say
+        # without the switch: one build into the cache, said once, and the same table
+        monkeypatch.delenv("TORCH_AMPN_NO_COMPILE")
+        monkeypatch.setattr(native.subprocess, "run", real_run)
+        native._library.cache_clear()
+        compiled = component_radius_table(pos, comp, 0.7, 3, batch=batch, backend="native")
+        assert torch.equal(compiled[0], pure[0]) and torch.equal(compiled[1], pure[1])
+        native._library.cache_clear()  # a new process: the cached library, no second build
+        assert native.native_available()
+        builds = [rec for rec in caplog.records if rec.getMessage().startswith("compiling the C contact")]
+        assert len(builds) == 1 and str(cache) in builds[0].getMessage()
+        assert builds[0].args[0] == (os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc"))
     finally:
         native._library.cache_clear()

@@ -1,7 +1,7 @@
 """Forming data: trajectories, datasets, meshes of laminates and tools, and their readers and writers.
 
-``HierarchicalData``, ``build_hierarchy`` and ``mesh_operator`` are the generic core's
-(:mod:`torch_ampn.hierarchy`), named here too for the forming code.
+``HierarchicalData``, ``build_hierarchy``, ``check_level_counts`` and ``mesh_operator`` are the
+generic core's (:mod:`torch_ampn.hierarchy`), named here too for the forming code.
 """
 
 from torch_ampn.data.dataset import (
@@ -24,7 +24,13 @@ from torch_ampn.data.mesh import (
 from torch_ampn.data.meshio_io import export_vtu_series, export_xdmf, read_time_series
 from torch_ampn.data.node_type import NodeType
 from torch_ampn.data.trajectory import Trajectory, TrajectoryFormatError, gripper_forces, gripper_points
-from torch_ampn.hierarchy import HierarchicalData, build_hierarchy, level_name, mesh_operator
+from torch_ampn.hierarchy import (
+    HierarchicalData,
+    build_hierarchy,
+    check_level_counts,
+    level_name,
+    mesh_operator,
+)
 
 __all__ = [
     "HierarchicalData",
@@ -38,6 +44,7 @@ __all__ = [
     "TrajectoryFormatError",
     "build_hierarchy",
     "cells_to_edge_index",
+    "check_level_counts",
     "export_vtu_series",
     "export_xdmf",
     "laminate_mesh",

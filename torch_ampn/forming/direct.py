@@ -327,7 +327,11 @@ class DirectSurrogate(ModelFile, nn.Module):
         self.target_scale = target_scale
         self.loss_steps = loss_steps
         self.contact = ComponentRadiusGraph(
-            contact_radius, contact_k, num_components=num_components, mode=contact_mode, positions="initial"
+            r=contact_radius,
+            k=contact_k,
+            num_components=num_components,
+            mode=contact_mode,
+            positions="initial",
         )
         sizes = ampn_channels(num_components, num_grippers, component_encoding=component_encoding)
         latent = int(network.get("hidden_channels", 128))

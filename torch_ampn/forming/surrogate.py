@@ -135,8 +135,8 @@ class AMPNSurrogate(ModelFile, nn.Module):
         self.component_encoding = component_encoding
         self.prior_features = bool(prior_features)
         self.contact = ComponentRadiusGraph(
-            contact_radius,
-            contact_k,
+            r=contact_radius,
+            k=contact_k,
             level_radius_scale=level_radius_scale,
             num_components=num_components,
             mode=contact_mode,

@@ -14,6 +14,7 @@ from torch_ampn.hierarchy.hierarchical_data import (
     UP,
     EdgeType,
     HierarchicalData,
+    check_level_counts,
     edge_type,
     level_name,
 )
@@ -27,6 +28,7 @@ __all__ = [
     "EdgeType",
     "HierarchicalData",
     "build_hierarchy",
+    "check_level_counts",
     "edge_type",
     "level_name",
     "mesh_operator",

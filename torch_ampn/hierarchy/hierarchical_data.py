@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torch_geometric.data import HeteroData
+from torch_geometric.data import Batch, HeteroData
 from torch_geometric.data.storage import EdgeStorage, NodeStorage
 
 from torch_ampn.utils.io import atomic_torch_save
@@ -44,6 +44,51 @@ def edge_type(relation: str, level: int) -> EdgeType:
     raise ValueError(f"relation must be one of {RELATIONS}, got {relation!r}")
 
 
+def _count_levels(data: HeteroData) -> int:
+    return sum(1 for t in data.node_types if _LEVEL_RE.match(t))
+
+
+def check_level_counts(data: HeteroData, num_levels: int) -> None:
+    """Raise ``ValueError`` unless every graph of ``data`` has at least ``num_levels`` levels.
+
+    ``data`` is one hierarchy or a PyG batch of them. ``Batch.from_data_list`` of hierarchies
+    with different level counts raises nothing: the batch has the first graph's levels, and a
+    level that some graphs lack holds only the others' nodes (``data["lk"].ptr`` counts fewer
+    graphs), so a model would mix them up. This finds both cases.
+
+    Args:
+        data: A :class:`HierarchicalData` or a batch of them (``Batch.from_data_list``, ``DataLoader``).
+        num_levels: Levels the model uses, ``>= 1``; more levels in ``data`` are fine.
+    """
+    if isinstance(num_levels, bool) or not isinstance(num_levels, int) or num_levels < 1:
+        raise ValueError(f"num_levels must be an int >= 1, got {num_levels!r}")
+    advice = (
+        "build them with the same AMGHierarchy(max_levels=..., min_coarse_nodes=...) "
+        "or pass AMGHierarchy(num_levels=...)"
+    )
+    present = _count_levels(data)
+    if not isinstance(data, Batch):
+        if present < num_levels:
+            raise ValueError(f"the hierarchy has {present} levels, the model uses {num_levels}; {advice}")
+        return
+    if present < num_levels:  # the batch's levels are those of its first graph
+        raise ValueError(
+            f"a batch of hierarchies with too few levels: graph 0 has {present} levels, "
+            f"the model uses {num_levels}; {advice}"
+        )
+    num_graphs = data.num_graphs
+    for level in range(1, num_levels):
+        lk = level_name(level)
+        # graphs that gave this level nodes: the level's ptr [G_k + 1], else its collation slices
+        slices = [data[lk].ptr] if "ptr" in data[lk] else list(data._slice_dict.get(lk, {}).values())
+        graphs = slices[0].numel() - 1 if slices else num_graphs
+        if graphs < num_graphs:  # the graphs without this level have exactly `level` levels
+            raise ValueError(
+                f"a batch of hierarchies with different level counts: {num_graphs - graphs} of its "
+                f"{num_graphs} graphs have {level} levels, the model uses {num_levels}; {advice}"
+            )
+
+
 class HierarchicalData(HeteroData):
     r"""A graph hierarchy ``l0`` (fine mesh) .. ``lL`` (coarsest) as one heterogeneous graph.
 
@@ -64,14 +109,16 @@ class HierarchicalData(HeteroData):
 
     It batches with :class:`torch_geometric.data.Batch` and
     :class:`torch_geometric.loader.DataLoader` like any ``HeteroData``: edge indices are
-    offset per level and ``data["lk"].batch`` assigns coarse nodes to graphs.
+    offset per level and ``data["lk"].batch`` assigns coarse nodes to graphs. The hierarchies
+    of one batch need the same number of levels (PyG does not check it;
+    :func:`check_level_counts` does).
     """
 
     # ---- structure -------------------------------------------------------------------
     @property
     def num_levels(self) -> int:
-        """Number of levels ``L + 1``."""
-        return sum(1 for t in self.node_types if _LEVEL_RE.match(t))
+        """Number of levels ``L + 1`` (of the first graph of a batch: see :func:`check_level_counts`)."""
+        return _count_levels(self)
 
     def _check_level(self, level: int, coarsest_ok: bool = True) -> int:
         n = self.num_levels

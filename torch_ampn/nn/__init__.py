@@ -10,8 +10,10 @@ from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
 from torch_ampn.nn.mlp import LayerNormMLP
-from torch_ampn.nn.multilevel_loss import multilevel_mse, restrict_mean
+from torch_ampn.nn.multilevel_loss import multilevel_mse
+from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.nn.slots import SlottedEdgeIndex, incoming_slots
+from torch_ampn.nn.transfer import restrict_mean, weighted_mean
 
 __all__ = [
     "AMPN",
@@ -20,6 +22,7 @@ __all__ = [
     "InterLevelConv",
     "IntraLevelConv",
     "LayerNormMLP",
+    "Normalizer",
     "RobinAMPN",
     "SlottedEdgeIndex",
     "geometric_beta_schedule",
@@ -27,4 +30,5 @@ __all__ = [
     "multilevel_mse",
     "pointwise_loss",
     "restrict_mean",
+    "weighted_mean",
 ]

@@ -10,12 +10,25 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 from torch_geometric.nn.aggr import Aggregation
 
-from torch_ampn.hierarchy.hierarchical_data import CONTACT, DOWN, MESH, UP, EdgeType, edge_type, level_name
+from torch_ampn.hierarchy.hierarchical_data import (
+    CONTACT,
+    DOWN,
+    MESH,
+    UP,
+    EdgeType,
+    check_level_counts,
+    edge_type,
+    level_name,
+)
 from torch_ampn.nn._conv import check_aggr
 from torch_ampn.nn.encoding import FourierLevelEncoding
 from torch_ampn.nn.inter_level_conv import InterLevelConv
 from torch_ampn.nn.intra_level_conv import IntraLevelConv
+from torch_ampn.nn.normalizer import Normalizer
 from torch_ampn.nn.slots import split_edges
+from torch_ampn.nn.transfer import restrict_mean
+
+EdgeDict = dict[EdgeType, Tensor]
 
 
 class AMPN(nn.Module):
@@ -80,6 +93,21 @@ class AMPN(nn.Module):
         num_level_frequencies: Frequencies of the level encoding (``2 F`` inputs).
         cond_channels: Width of the conditioning vector appended to every node's input
             (:meth:`forward`'s ``cond``); 0: none.
+        transfer_weights: Down and Up aggregate by the weighted mean with the prolongator's
+            weights (the down and up edges' ``edge_weight`` from
+            :func:`~torch_ampn.hierarchy.build_hierarchy`): restriction and interpolation as
+            in multigrid, instead of ``aggr`` (see :class:`InterLevelConv`). ``False``: the
+            paper's ``aggr``.
+        coarse_inputs: ``"none"`` (the paper's): coarse nodes start from their level encoding
+            (and ``data["lk"].x`` with ``coarse_in_channels > 0``); ``"restrict"``: each coarse
+            node also gets the weighted mean of the ``l0`` inputs over its aggregate (restricted
+            level by level with the down edges' weights, as multigrid restricts a right-hand side).
+        normalize: Standardise the ``l0`` inputs (and ``data["lk"].x``) and every edge relation's
+            features, per level, with statistics accumulated in training mode over the first
+            ``normalize_batches`` batches (then frozen; kept in the state dict), as MeshGraphNets'
+            online normalisers do. Without it, inputs must be scaled by the user: mesh edge
+            features of a fine mesh are ``O(h)``, far below a fresh linear layer's reach.
+        normalize_batches: Training batches whose statistics the normalisers accumulate.
 
     Example:
         >>> from torch_ampn.transforms import AMGHierarchy
@@ -106,12 +134,18 @@ class AMPN(nn.Module):
         relations: Sequence[str] = (MESH,),
         num_level_frequencies: int = 4,
         cond_channels: int = 0,
+        transfer_weights: bool = False,
+        coarse_inputs: str = "none",
+        normalize: bool = False,
+        normalize_batches: int = 100,
     ) -> None:
         super().__init__()
         if num_levels < 1:
             raise ValueError(f"num_levels must be >= 1, got {num_levels}")
         if num_levels > 1 and (down_layers < 1 or up_layers < 1):
             raise ValueError("a hierarchy (num_levels > 1) needs down_layers >= 1 and up_layers >= 1")
+        if coarse_inputs not in ("none", "restrict"):
+            raise ValueError(f"coarse_inputs must be 'none' or 'restrict', got {coarse_inputs!r}")
         relations = tuple(relations)
         if relations not in ((MESH,), (MESH, CONTACT)):
             raise ValueError(f"relations must be ('mesh',) or ('mesh', 'contact'), got {relations}")
@@ -122,6 +156,10 @@ class AMPN(nn.Module):
         self.num_levels = num_levels
         self.relations = relations
         self.cond_channels = cond_channels
+        self.transfer_weights = bool(transfer_weights)
+        self.coarse_inputs = coarse_inputs
+        self.normalize = bool(normalize)
+        self.normalize_batches = int(normalize_batches)
         aggr = check_aggr(aggr)
         self.aggr = aggr if isinstance(aggr, str) else repr(aggr)  # a template module is not registered
         self.mlp_channels = mlp_channels
@@ -137,8 +175,9 @@ class AMPN(nn.Module):
         # an edge relation without features gets a constant 1 as its input (a learnt embedding)
         width = {rel: max(w, 1) for rel, w in self.edge_widths.items()}
         self.edge_encoders = nn.ModuleDict({rel: nn.Linear(width[rel], d) for rel in relations})
+        coarse_width = coarse_in_channels + (in_channels if coarse_inputs == "restrict" else 0)
         if hierarchical:  # (created in this order, which the initialisation's random draws follow)
-            self.node_encoders["coarse"] = nn.Linear(coarse_in_channels + cond, d)
+            self.node_encoders["coarse"] = nn.Linear(coarse_width + cond, d)
             self.edge_encoders[DOWN] = nn.Linear(width[DOWN], d)
             self.edge_encoders[UP] = nn.Linear(width[UP], d)
 
@@ -154,6 +193,18 @@ class AMPN(nn.Module):
         self.down = inter(down_layers) if hierarchical else nn.ModuleList()
         self.up = inter(up_layers) if hierarchical else nn.ModuleList()
         self.decoder = nn.Linear(d, out_channels)
+        if self.normalize:  # buffers only: no parameter, no random draw
+            self.node_norm = nn.ModuleDict({"fine": Normalizer(in_channels)})
+            if hierarchical and coarse_in_channels > 0:
+                self.node_norm["coarse"] = Normalizer(coarse_in_channels)
+            self.edge_norm = nn.ModuleDict(
+                {
+                    f"{rel}{k}": Normalizer(max(width, 1))
+                    for rel, width in self.edge_widths.items()
+                    for k in range(num_levels)
+                }
+            )
+            self.register_buffer("normalized_batches", torch.zeros((), dtype=torch.long))
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -187,17 +238,20 @@ class AMPN(nn.Module):
 
     def inputs(
         self, data: HeteroData
-    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor], dict[EdgeType, Tensor], dict[str, Tensor] | None]:
-        """``(x_dict, edge_index_dict, edge_attr_dict, batch_dict)`` of a (batched) hierarchy.
+    ) -> tuple[dict[str, Tensor], EdgeDict, EdgeDict, dict[str, Tensor] | None, EdgeDict]:
+        """``(x_dict, edge_index_dict, edge_attr_dict, batch_dict, edge_weight_dict)`` of a hierarchy.
 
         Reads ``data["l0"].x``, ``data["lk"].x`` (with ``coarse_in_channels > 0``) and every
         used relation's ``edge_index`` and ``edge_attr`` (a relation of width 0 needs no
-        ``edge_attr`` and gets ones ``[E, 1]``; a missing contact relation counts as empty).
+        ``edge_attr`` and gets ones ``[E, 1]``; a missing contact relation counts as empty), and
+        the down and up edges' ``edge_weight`` where present (needed with ``transfer_weights``
+        or ``coarse_inputs="restrict"``).
         """
         num_levels = self.num_levels
         if len(data.node_types) < num_levels:
             levels = len(data.node_types)
             raise ValueError(f"AMPN with num_levels={num_levels}: the data has {levels} level(s)")
+        check_level_counts(data, num_levels)  # a batch of hierarchies: every graph has the levels
         fine = data[level_name(0)]
         if "x" not in fine:
             raise ValueError("AMPN: the data has no node features data['l0'].x")
@@ -213,7 +267,7 @@ class AMPN(nn.Module):
                 x_dict[level_name(k)] = store.x
             else:
                 x_dict[level_name(k)] = x.new_empty(store.num_nodes, 0)
-        edge_index_dict, edge_attr_dict = {}, {}
+        edge_index_dict, edge_attr_dict, edge_weight_dict = {}, {}, {}
         keys = [(rel, k) for k in range(num_levels) for rel in self.relations]
         keys += [(rel, k) for k in range(num_levels - 1) for rel in (DOWN, UP)]
         for rel, k in keys:
@@ -224,6 +278,8 @@ class AMPN(nn.Module):
                 raise ValueError(f"AMPN: the data has no {key} edges")
             store = data[key]
             edge_index_dict[key] = store.edge_index
+            if rel in (DOWN, UP) and "edge_weight" in store:
+                edge_weight_dict[key] = store.edge_weight
             width = self.edge_widths[rel]
             if width == 0:
                 edge_attr_dict[key] = x.new_ones(store.edge_index.size(1), 1)
@@ -236,7 +292,7 @@ class AMPN(nn.Module):
         batch_dict = None
         if batched:
             batch_dict = {level_name(k): data[level_name(k)].batch for k in range(num_levels)}
-        return x_dict, edge_index_dict, edge_attr_dict, batch_dict
+        return x_dict, edge_index_dict, edge_attr_dict, batch_dict, edge_weight_dict
 
     def forward(
         self,
@@ -246,6 +302,7 @@ class AMPN(nn.Module):
         batch_dict: dict[str, Tensor] | None = None,
         contact_mask_dict: dict[EdgeType, Tensor] | None = None,
         cond: Tensor | None = None,
+        edge_weight_dict: dict[EdgeType, Tensor] | None = None,
     ) -> Tensor:
         """The prediction of every ``l0`` node, ``[N_0, out_channels]``.
 
@@ -268,13 +325,17 @@ class AMPN(nn.Module):
             contact_mask_dict: Optional ``{("lk", "contact", "lk"): BoolTensor[M_k]}``
                 validity masks of fixed-size contact tables (see :class:`IntraLevelConv`).
             cond: Conditioning ``[cond_channels]`` (every node) or ``[B, cond_channels]`` (per graph).
+            edge_weight_dict: ``{("lk", "down", "lk+1"): [E], ("lk+1", "up", "lk"): [E]}`` the
+                prolongator's weights; needed with ``transfer_weights`` or
+                ``coarse_inputs="restrict"`` (a hierarchy passed whole brings its own).
 
         Returns:
             ``[N_0, out_channels]``.
         """
         if isinstance(x_dict, HeteroData):
-            x_dict, edge_index_dict, edge_attr_dict, found = self.inputs(x_dict)
+            x_dict, edge_index_dict, edge_attr_dict, found, weights = self.inputs(x_dict)
             batch_dict = batch_dict if batch_dict is not None else found
+            edge_weight_dict = edge_weight_dict if edge_weight_dict is not None else weights
         if edge_index_dict is None or edge_attr_dict is None:
             raise ValueError("AMPN: pass a HierarchicalData, or x_dict, edge_index_dict and edge_attr_dict")
         num_levels = self.num_levels
@@ -286,11 +347,21 @@ class AMPN(nn.Module):
             raise ValueError(f"AMPN(cond_channels={self.cond_channels}): pass `cond` exactly when it is > 0")
         batch_dict = batch_dict or {}
         contact = CONTACT in self.relations
+        weights = self._transfer_weights(edge_weight_dict)
+        if self.normalize:
+            x_dict, edge_attr_dict = self._normalized(x_dict, edge_attr_dict)
 
         # ---- encode ------------------------------------------------------------------
         h: list[Tensor] = []  # node embeddings per level, [N_k, d]
+        restricted = x_dict[names[0]]  # [N_k, F]: the l0 inputs restricted to level k
         for k, lk in enumerate(names):
             x = x_dict[lk]
+            if k > 0 and self.coarse_inputs == "restrict":
+                down = edge_index_dict[edge_type(DOWN, k - 1)]
+                restricted = restrict_mean(
+                    restricted, restricted.new_ones(restricted.size(0)), down, weights[DOWN][k - 1], x.size(0)
+                )[0]  # [N_k, F]
+                x = torch.cat([x, restricted], dim=-1)
             parts = [x, *self._conditioning(k, x.size(0), cond, batch_dict.get(lk), x)]
             h.append(self.node_encoders["fine" if k == 0 else "coarse"](torch.cat(parts, dim=-1)))
 
@@ -328,20 +399,65 @@ class AMPN(nn.Module):
                 )
 
         # ---- V-cycle -----------------------------------------------------------------
+        transfer = self.transfer_weights
         for k in range(num_levels - 1):
             intra_stack(self.pre, k)
             for conv in self.down:
-                h[k + 1], down_e[k] = conv((h[k], h[k + 1]), down_index[k], down_e[k])
+                w = weights[DOWN][k] if transfer else None
+                h[k + 1], down_e[k] = conv((h[k], h[k + 1]), down_index[k], down_e[k], w)
         coarsest = num_levels - 1
         intra_stack(self.pre, coarsest)
         intra_stack(self.solve, coarsest)
         intra_stack(self.post, coarsest)
         for k in range(num_levels - 2, -1, -1):
             for conv in self.up:
-                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k])
+                w = weights[UP][k] if transfer else None
+                h[k], up_e[k] = conv((h[k + 1], h[k]), up_index[k], up_e[k], w)
             intra_stack(self.post, k)
 
         return self.decoder(h[0])
+
+    def _transfer_weights(self, edge_weight_dict: dict[EdgeType, Tensor] | None) -> dict[str, list[Tensor]]:
+        """``{"down": [w_0, ..], "up": [..]}`` per level pair where the options need them, else empty."""
+        out: dict[str, list[Tensor]] = {DOWN: [], UP: []}
+        if self.num_levels == 1 or not (self.transfer_weights or self.coarse_inputs == "restrict"):
+            return out
+        for rel in (DOWN, UP):
+            for k in range(self.num_levels - 1):
+                key = edge_type(rel, k)
+                if edge_weight_dict is None or key not in edge_weight_dict:
+                    raise ValueError(
+                        f"AMPN(transfer_weights={self.transfer_weights}, "
+                        f"coarse_inputs={self.coarse_inputs!r}) needs the prolongator weights "
+                        f"data[{key}].edge_weight (AMGHierarchy stores them)"
+                    )
+                out[rel].append(edge_weight_dict[key])
+        return out
+
+    def _normalized(
+        self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor]
+    ) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+        """Inputs standardised by the online normalisers (updated first while training, until frozen)."""
+        pairs: list[tuple[Normalizer, Tensor, str | EdgeType, dict]] = []  # (normaliser, value, key, dict)
+        for k in range(self.num_levels):
+            lk = level_name(k)
+            kind = "fine" if k == 0 else "coarse"
+            if kind in self.node_norm:
+                pairs.append((self.node_norm[kind], x_dict[lk], lk, x_dict))
+        for key, attr in edge_attr_dict.items():
+            name = f"{key[1]}{key[0][1:] if key[1] != UP else key[2][1:]}"
+            if name in self.edge_norm:
+                pairs.append((self.edge_norm[name], attr, key, edge_attr_dict))
+        update = self.training and torch.is_grad_enabled()
+        update = update and int(self.normalized_batches) < self.normalize_batches
+        if update:
+            self.normalized_batches += 1
+        x_dict, edge_attr_dict = dict(x_dict), dict(edge_attr_dict)
+        for norm, value, key, target in pairs:
+            if update:
+                norm.update(value)
+            target[key] = norm(value)
+        return x_dict, edge_attr_dict
 
     def extra_repr(self) -> str:
         """Constructor arguments shown by ``repr``."""
@@ -350,6 +466,9 @@ class AMPN(nn.Module):
             f"out_channels={self.out_channels}, hidden_channels={self.hidden_channels}, "
             f"mlp_channels={self.mlp_channels}, num_levels={self.num_levels}, "
             f"relations={self.relations}, aggr={self.aggr!r}"
+            + (", transfer_weights=True" if self.transfer_weights else "")
+            + (f", coarse_inputs={self.coarse_inputs!r}" if self.coarse_inputs != "none" else "")
+            + (", normalize=True" if self.normalize else "")
         )
 
 

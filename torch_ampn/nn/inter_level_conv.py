@@ -5,9 +5,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 from torch_geometric.nn.aggr import Aggregation
+from torch_geometric.typing import OptTensor
 
 from torch_ampn.nn._conv import EmbeddingConv
 from torch_ampn.nn.slots import Edges, split_edges
+from torch_ampn.nn.transfer import weighted_mean
 
 
 class InterLevelConv(EmbeddingConv):
@@ -55,9 +57,9 @@ class InterLevelConv(EmbeddingConv):
         self.reset_parameters()
 
     def forward(
-        self, x: tuple[Tensor, Tensor], edge_index: Edges, edge_attr: Tensor
+        self, x: tuple[Tensor, Tensor], edge_index: Edges, edge_attr: Tensor, edge_weight: OptTensor = None
     ) -> tuple[Tensor, Tensor]:
-        """Run one layer of eq. (2).
+        r"""Run one layer of eq. (2).
 
         Args:
             x: ``(x_src [N_s, d], x_dst [N_t, d])``: sender and receiver embeddings.
@@ -65,6 +67,12 @@ class InterLevelConv(EmbeddingConv):
                 :class:`~torch_ampn.nn.SlottedEdgeIndex` aggregates by a dense reduction over
                 its table (same result).
             edge_attr: Edge embeddings ``[E, d]``.
+            edge_weight: Optional ``[E]`` weights :math:`w_{ij}`: the aggregation is then the
+                weighted mean :math:`\sum_j w_{ij} \mathbf{e}^{\prime}_{ij} / \sum_j w_{ij}`
+                (instead of ``aggr``), the multigrid transfer with the prolongator's weights
+                (``edge_weight`` of :func:`~torch_ampn.hierarchy.build_hierarchy`'s down and up
+                edges): interpolation on up edges (each row of :math:`P` sums to 1), the
+                normalised restriction :math:`P^\top` on down edges. Plain ``edge_index`` only.
 
         Returns:
             ``(x_dst, edge_attr)``: new receiver embeddings ``[N_t, d]`` and edge embeddings ``[E, d]``.
@@ -74,6 +82,9 @@ class InterLevelConv(EmbeddingConv):
         edge_attr = self.mlp_edge.forward_edges(
             x_dst, x_src, edge_attr, split_edges(edge_index)[0], self.lin_edge.weight
         )  # [E, d]: W e + f(k_i, k_j, e)
-        agg = self.aggregate_edges(edge_index, edge_attr, size)  # [N_t, d]
+        if edge_weight is None:
+            agg = self.aggregate_edges(edge_index, edge_attr, size)  # [N_t, d]
+        else:
+            agg = weighted_mean(split_edges(edge_index)[0], edge_attr, edge_weight, size[1])  # [N_t, d]
         x_dst = self.lin_node(x_dst) + self.mlp_node(torch.cat([x_dst, agg], dim=-1))  # [N_t, d]
         return x_dst, edge_attr

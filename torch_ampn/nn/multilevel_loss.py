@@ -27,31 +27,7 @@ import torch
 from torch import Tensor
 
 from torch_ampn.nn.diffusion import masked_mean
-
-
-def restrict_mean(
-    values: Tensor, weight: Tensor, down_index: Tensor, down_weight: Tensor, num_coarse: int
-) -> tuple[Tensor, Tensor]:
-    r"""Weighted mean of fine values over each coarse node's aggregate.
-
-    Args:
-        values: Fine values ``[N_f, C]``.
-        weight: Fine weights ``[N_f]`` (e.g. a 0/1 mask), non-negative.
-        down_index: ``("lk", "down", "lk+1")`` edges ``[2, E]``, rows ``(fine i, coarse J)``.
-        down_weight: Prolongator values :math:`P_{iJ}` of those edges ``[E]`` (their magnitude is used).
-        num_coarse: Number of coarse nodes ``N_c``.
-
-    Returns:
-        ``(mean [N_c, C], coarse weight [N_c])``; a coarse node with zero weight has mean 0.
-    """
-    fine, coarse = down_index
-    w = down_weight.abs().to(values.dtype) * weight.to(values.dtype)[fine]  # [E]
-    total = values.new_zeros(num_coarse).index_add_(0, coarse, w)  # [N_c]
-    summed = values.new_zeros(num_coarse, values.size(-1)).index_add_(
-        0, coarse, w.unsqueeze(-1) * values[fine]
-    )  # [N_c, C]
-    mean = summed / total.clamp(min=torch.finfo(values.dtype).tiny).unsqueeze(-1)
-    return mean, total
+from torch_ampn.nn.transfer import restrict_mean
 
 
 def multilevel_mse(

@@ -173,7 +173,7 @@ class AMPNDataModule(L.LightningDataModule):
             raise ValueError(f"data.make_dataset: {make_dataset!r} is not callable")
         self.data_dir = Path(data_dir)
         self.contact = ComponentRadiusGraph(
-            contact_radius, contact_k, mode=contact_mode, positions=contact_positions
+            r=contact_radius, k=contact_k, mode=contact_mode, positions=contact_positions
         )
         self.hierarchies = HierarchyCache(
             self.data_dir / "cache", max_levels=max_levels, min_coarse_nodes=min_coarse_nodes

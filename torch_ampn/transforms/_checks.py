@@ -70,7 +70,7 @@ def check_backend(backend: str, device: torch.device | None = None) -> str:
     if backend == "torch_cluster" and not torch_cluster_available():
         raise ValueError("backend='torch_cluster' needs the optional package torch-cluster")
     if backend == "native" and not native_available():
-        raise ValueError("backend='native' needs a C compiler (cc, or the one $CC names)")
+        raise ValueError("backend='native' needs a C compiler (cc or $CC) and no TORCH_AMPN_NO_COMPILE=1")
     if backend == "auto":
         on_cpu = device is not None and torch.device(device).type == "cpu"
         return "native" if on_cpu and native_available() else "grid"

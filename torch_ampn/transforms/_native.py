@@ -9,9 +9,12 @@ multiply-add), same ties, same table.
 
 The C file is compiled once with the system C compiler (``$CC``, else ``cc``) into
 ``$TORCH_AMPN_CACHE`` (default ``~/.cache/torch_ampn``), keyed by the source's hash, and
-loaded with :mod:`ctypes`; no PyTorch headers, so a build takes well under a second. Where
-there is no compiler :func:`native_available` is ``False`` and ``backend="auto"`` takes the
-PyTorch grid.
+loaded with :mod:`ctypes`; no PyTorch headers, so a build takes well under a second. The
+build is logged (``logging`` level INFO, logger ``torch_ampn.transforms._native``: the
+compiler and the file). Where there is no compiler, or with ``TORCH_AMPN_NO_COMPILE=1`` (or
+the older ``TORCH_AMPN_NATIVE=0``) in the environment before the first search, nothing is
+compiled or loaded: :func:`native_available` is ``False`` and ``backend="auto"`` takes the
+PyTorch grid (per call: ``backend="grid"``).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import logging
 import os
 import shutil
 import subprocess
@@ -32,16 +36,24 @@ SOURCE = Path(__file__).with_name("_native.c")
 #: Most cells (over all groups) the C grid allocates; coarser cells keep it below.
 MAX_CELLS = 1 << 22
 
+logger = logging.getLogger(__name__)
+
 
 def _cache_dir() -> Path:
     root = os.environ.get("TORCH_AMPN_CACHE") or Path.home() / ".cache" / "torch_ampn"
     return Path(root)
 
 
+def _switched_off() -> bool:
+    """Whether ``TORCH_AMPN_NO_COMPILE=1`` (or the older ``TORCH_AMPN_NATIVE=0``) turns the C search off."""
+    off = os.environ.get("TORCH_AMPN_NO_COMPILE", "0") not in ("", "0")
+    return off or os.environ.get("TORCH_AMPN_NATIVE") == "0"
+
+
 @functools.cache
 def _library() -> ctypes.CDLL | None:
     """The compiled search (built into the cache at the first call), or ``None`` without a compiler."""
-    if os.environ.get("TORCH_AMPN_NATIVE", "1") == "0":
+    if _switched_off():
         return None
     source = SOURCE.read_bytes()
     compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
@@ -56,9 +68,16 @@ def _library() -> ctypes.CDLL | None:
                 built = Path(tmp) / target.name
                 flags = ["-O3", "-ffp-contract=off", "-fPIC", "-shared"]  # no FMA: the same sums
                 cmd = [compiler, *flags, str(SOURCE), "-o", str(built), "-lm"]
+                logger.info(
+                    "compiling the C contact search with %s into %s (once; TORCH_AMPN_NO_COMPILE=1 "
+                    "takes the PyTorch grid instead)",
+                    compiler,
+                    target,
+                )
                 subprocess.run(cmd, check=True, capture_output=True, timeout=120)
                 os.replace(built, target)  # atomic: concurrent builders all end with one file
-        except (OSError, subprocess.SubprocessError):
+        except (OSError, subprocess.SubprocessError) as err:
+            logger.info("the C contact search did not compile (%s): the PyTorch grid runs instead", err)
             return None
     try:
         lib = ctypes.CDLL(str(target))
@@ -97,7 +116,7 @@ def native_table(
     """
     lib = _library()
     if lib is None:
-        raise RuntimeError("the native contact search needs a C compiler (set CC or install cc)")
+        raise RuntimeError("the native contact search needs a C compiler and no TORCH_AMPN_NO_COMPILE=1")
     if pos.device.type != "cpu":
         raise ValueError(f"backend='native' runs on the CPU, got positions on {pos.device}")
     n, c = pos.size(0), num_components

@@ -60,7 +60,8 @@ class ComponentRadiusGraph(BaseTransform):
     (ROBIN's static contact edges).
 
     Args:
-        r: Contact radius (inclusive) of level 0, ``> 0``.
+        r: Contact radius (inclusive) of level 0, ``> 0``, in the units of the positions (no
+            default: it depends on the mesh; the forming models use about 3 mm).
         k: Neighbours per other component, ``>= 1``.
         level_radius_scale: ``None``, a positive number or a sequence of positive numbers
             (see above).
@@ -83,7 +84,7 @@ class ComponentRadiusGraph(BaseTransform):
 
     def __init__(
         self,
-        r: float = 3.0,
+        r: float,
         k: int = 3,
         level_radius_scale: float | Sequence[float] | None = None,
         num_components: int | None = None,

@@ -31,8 +31,8 @@ class AMGHierarchy(BaseTransform):
 
     * level ``l0`` holds every node attribute of the input (``x``, ``y``, ``pos``, ``pos0``,
       ``component``, ...), its mesh edges are the input's ``edge_index`` as given;
-    * a coarse level ``lk`` holds the positions ``pos`` (and ``pos0``) of its root fine nodes
-      (:meth:`~torch_ampn.hierarchy.HierarchicalData.fine_index`) and ``root``;
+    * a coarse level ``lk`` holds the positions ``pos`` (and ``pos0``) and the ``component`` ids of
+      its root fine nodes (:meth:`~torch_ampn.hierarchy.HierarchicalData.fine_index`) and ``root``;
     * with ``edge_features`` (default), every mesh, down and up edge gets the seed paper's
       relative-position features as ``edge_attr``
       (:func:`~torch_ampn.hierarchy.features.edge_features`: :math:`x_i - x_j` and its norm, ``[E, 4]``
@@ -41,10 +41,19 @@ class AMGHierarchy(BaseTransform):
       edges get zeros in its place; without ``edge_features`` it is ``l0``'s mesh ``edge_attr``;
     * contact edges an earlier :class:`~torch_ampn.transforms.ComponentRadiusGraph` stored as
       ``contact_edge_index`` become ``l0``'s contact relation (with their relative-position
-      features); otherwise the hierarchy has no contact relation;
+      features), and the coarse levels get none; otherwise the hierarchy has no contact
+      relation. For contact edges on every level apply ``ComponentRadiusGraph`` after this
+      transform, to the hierarchy;
     * graph attributes (not per node or edge) are kept.
 
-    It batches with PyG's ``DataLoader`` (``data["lk"].batch`` per level) and is deterministic.
+    It is deterministic.
+
+    Batching: it batches with PyG's ``DataLoader`` (``data["lk"].batch`` per level), but the
+    meshes of one batch must have the same number of levels, and the level count depends on
+    the mesh (coarsening stops at ``min_coarse_nodes``). PyG does not check it
+    (:func:`~torch_ampn.hierarchy.check_level_counts` does): for a dataset of meshes of
+    different sizes pass ``num_levels``, which gives every mesh exactly that many levels or
+    raises ``ValueError`` for a mesh that does not coarsen so far.
 
     Args:
         max_levels: Levels at most, the fine one included (4 in the paper).
@@ -55,6 +64,8 @@ class AMGHierarchy(BaseTransform):
         edge_features: Whether to compute the relative-position ``edge_attr`` of every edge.
         cache_dir: Where to keep built hierarchies by topology (see
             :func:`~torch_ampn.hierarchy.build_hierarchy`); ``None``: no cache.
+        num_levels: Exactly this many levels for every mesh (``max_levels`` is then ignored), or
+            a ``ValueError`` naming the mesh size; ``None``: up to ``max_levels``, as the mesh allows.
 
     Example:
         >>> from torch_geometric.transforms import Delaunay, FaceToEdge
@@ -72,9 +83,11 @@ class AMGHierarchy(BaseTransform):
         down_edges: str = "smoothed",
         edge_features: bool = True,
         cache_dir: str | os.PathLike | None = None,
+        num_levels: int | None = None,
     ) -> None:
-        if isinstance(max_levels, bool) or not isinstance(max_levels, int) or max_levels < 1:
-            raise ValueError(f"AMGHierarchy: max_levels must be an int >= 1, got {max_levels!r}")
+        _check_level_count(max_levels, "max_levels")
+        if num_levels is not None:
+            _check_level_count(num_levels, "num_levels")
         if operator not in OPERATORS:
             raise ValueError(f"AMGHierarchy: operator must be one of {OPERATORS}, got {operator!r}")
         if down_edges not in DOWN_EDGES:
@@ -85,6 +98,7 @@ class AMGHierarchy(BaseTransform):
         self.down_edges = down_edges
         self.edge_features = bool(edge_features)
         self.cache_dir = cache_dir
+        self.num_levels = num_levels
 
     def forward(self, data: Data) -> HierarchicalData:
         """The hierarchy of ``data`` (see the class docs)."""
@@ -100,13 +114,19 @@ class AMGHierarchy(BaseTransform):
         h = build_hierarchy(
             data.edge_index,
             num_nodes,
-            max_levels=self.max_levels,
+            max_levels=self.max_levels if self.num_levels is None else self.num_levels,
             min_coarse_nodes=self.min_coarse_nodes,
             operator=self.operator,
             down_edges=self.down_edges,
             cache_dir=self.cache_dir,
         )
         levels = h.num_levels
+        if self.num_levels is not None and levels < self.num_levels:
+            raise ValueError(
+                f"AMGHierarchy(num_levels={self.num_levels}): the mesh of {num_nodes} nodes coarsens to "
+                f"{levels} levels only ({h.num_nodes_per_level()} nodes; a coarse level needs "
+                f"min_coarse_nodes={self.min_coarse_nodes}): lower num_levels or min_coarse_nodes"
+            )
         for k in range(levels):
             del h[edge_type(CONTACT, k)]  # build_hierarchy's empty contact relations
         h[edge_type(MESH, 0)].edge_index = data.edge_index  # the user's graph, as given
@@ -121,6 +141,7 @@ class AMGHierarchy(BaseTransform):
             elif not data.is_edge_attr(key):
                 h[key] = value
         pos0 = data.pos0 if "pos0" in data else None
+        component = fine.component if "component" in fine else None  # a node attribute [N]
         positions = [pos]
         initial = [pos0]
         for k in range(1, levels):
@@ -130,6 +151,8 @@ class AMGHierarchy(BaseTransform):
             h[f"l{k}"].pos = positions[-1]
             if pos0 is not None:
                 h[f"l{k}"].pos0 = initial[-1]
+            if component is not None:
+                h[f"l{k}"].component = component[idx]
 
         if "contact_edge_index" in data:
             h[edge_type(CONTACT, 0)].edge_index = data.contact_edge_index
@@ -162,5 +185,11 @@ class AMGHierarchy(BaseTransform):
         return (
             f"{self.__class__.__name__}(max_levels={self.max_levels}, "
             f"min_coarse_nodes={self.min_coarse_nodes}, operator={self.operator!r}, "
-            f"down_edges={self.down_edges!r}, edge_features={self.edge_features})"
+            f"down_edges={self.down_edges!r}, edge_features={self.edge_features}, "
+            f"num_levels={self.num_levels})"
         )
+
+
+def _check_level_count(value: int, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"AMGHierarchy: {name} must be an int >= 1, got {value!r}")

@@ -65,7 +65,7 @@ from torch_ampn.transforms._native import native_table
 def component_radius_table(
     pos: Tensor,
     component: Tensor,
-    r: float = 3.0,
+    r: float,
     k: int = 3,
     *,
     num_components: int | None = None,
@@ -84,7 +84,7 @@ def component_radius_table(
         pos: ``[N, 3]`` floating point node positions.
         component: ``[N]`` integer component id of every node (``>= 0``; ids without
             nodes are allowed).
-        r: Search radius (inclusive), ``> 0``.
+        r: Search radius (inclusive), ``> 0``, in the units of ``pos`` (no default: it depends on the mesh).
         k: Neighbours per other component, ``>= 1``.
         num_components: ``C``; defaults to ``component.max() + 1``. Pass it to keep the
             table width fixed when some components may be missing.
@@ -134,7 +134,7 @@ def table_to_edge_index(nbr: Tensor, mask: Tensor) -> Tensor:
 def component_radius_graph(
     pos: Tensor,
     component: Tensor,
-    r: float = 3.0,
+    r: float,
     k: int = 3,
     *,
     num_components: int | None = None,
@@ -170,7 +170,7 @@ def component_radius_graph(
 
 def plain_radius_graph(
     pos: Tensor,
-    r: float = 3.0,
+    r: float,
     *,
     batch: Tensor | None = None,
     loop: bool = False,
