@@ -35,9 +35,12 @@ AMPN_VARIANTS: dict[str, dict] = {
     "ampn_no_weights": dict(transfer_weights=False),
     "ampn_no_restrict": dict(coarse_inputs="none"),
     "ampn_no_normalize": dict(normalize=False),
+    "ampn_mlp_norm": dict(mlp_norm=True),
+    "ampn_no_mlp_norm": dict(mlp_norm=False),
+    "ampn_mean": dict(aggr="mean"),
 }
 #: What the generic default is in this benchmark (the AMPN's own defaults may differ).
-GENERIC = dict(aggr="sum", transfer_weights=True, coarse_inputs="restrict", normalize=True)
+GENERIC = dict(aggr="sum", transfer_weights=True, coarse_inputs="restrict", normalize=True, mlp_norm=False)
 
 
 def count(model: nn.Module) -> int:

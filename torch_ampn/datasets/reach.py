@@ -9,8 +9,8 @@ SciPy (float64, then stored as float32):
   ``g`` a random smooth periodic function of the arc length plus a random constant. The interior
   depends on all of the boundary: a node in the middle is about ``sqrt(N) / 2`` mesh edges away.
 * :func:`elasticity_sample`: plane-stress linear elasticity of a ``2 x 1`` plate clamped on its
-  left edge and loaded on its right edge by a random smooth traction; the displacement everywhere
-  depends on the load resultant at the far edge (``sqrt(2 N)`` edges away).
+  left edge and pulled on its right edge by a random smooth prescribed displacement; the
+  displacement in between depends on both edges (``sqrt(2 N)`` edges apart).
 * :func:`smoothing_sample`: the control, whose answer is local: the consistent mass matrix applied
   to a noisy node field, divided by the lumped mass (a one-ring weighted average).
 
@@ -39,7 +39,7 @@ PROBLEMS = {
     "elasticity": {
         "in_channels": 6,
         "out_channels": 2,
-        "inputs": "clamped flag, loaded flag, traction (x, y) on the loaded edge, x, y",
+        "inputs": "clamped flag, loaded flag, prescribed displacement (x, y) on the loaded edge, x, y",
     },
     "smoothing": {"in_channels": 4, "out_channels": 1, "inputs": "noisy field, boundary flag, x, y"},
 }
@@ -214,16 +214,18 @@ def laplace_sample(num_nodes: int, seed: int, modes: int = 6) -> Data:
 
 
 def elasticity_sample(num_nodes: int, seed: int, modes: int = 3, poisson: float = 0.3) -> Data:
-    r"""A ``2 x 1`` plate, clamped at ``x = 0``, loaded at ``x = 2`` by a random smooth traction: one sample.
+    r"""A ``2 x 1`` plate clamped at ``x = 0`` and pulled at ``x = 2`` by a random smooth displacement.
 
-    Plane stress, Young's modulus 1. The traction ``t(y) = (t_x, t_y)`` on the right edge is a
-    random constant plus ``modes`` random cosine modes per component; its nodal forces are
-    integrated exactly for linear elements (trapezoidal per boundary segment, linear ``t``).
+    Plane stress, Young's modulus 1, top and bottom edges free. The far edge's prescribed
+    displacement ``d(y) = (d_x, d_y)`` (each component a random constant plus ``modes`` random
+    cosine modes of amplitude ``1 / k``) loads the plate, as the punch's prescribed motion
+    drives a forming simulation; the displacement in between depends on both edges, ``sqrt(2 N)``
+    mesh edges apart.
 
     Returns:
-        ``Data``: ``x [N, 6]`` (clamped flag, loaded flag, ``t_x``, ``t_y`` on the loaded edge
-        and 0 elsewhere, ``x``, ``y``), ``y [N, 2]`` (the displacement), ``mask`` every node
-        that is not clamped, ``source`` the loaded edge.
+        ``Data``: ``x [N, 6]`` (clamped flag, loaded flag, ``d_x``, ``d_y`` on the loaded edge
+        and 0 elsewhere, ``x``, ``y``), ``y [N, 2]`` (the displacement), ``mask`` the nodes of
+        neither edge, ``source`` the loaded edge.
     """
     width, height = 2.0, 1.0
     rng = np.random.default_rng(seed)
@@ -236,23 +238,15 @@ def elasticity_sample(num_nodes: int, seed: int, modes: int = 3, poisson: float 
     def profile(y: np.ndarray) -> np.ndarray:
         return rng.standard_normal() + np.cos(np.pi * np.outer(y, k)) @ (rng.standard_normal(modes) / k)
 
-    tx, ty = profile(pos[:, 1]), profile(pos[:, 1])
-    tx, ty = np.where(loaded, tx, 0.0), np.where(loaded, ty, 0.0)
-    # nodal forces of the right edge's segments: int phi_i t over each segment (t linear on it)
-    edge_nodes = np.flatnonzero(loaded)
-    edge_nodes = edge_nodes[np.argsort(pos[edge_nodes, 1])]
-    f = np.zeros((n, 2))
-    a, b = edge_nodes[:-1], edge_nodes[1:]
-    length = pos[b, 1] - pos[a, 1]
-    for t, col in ((tx, 0), (ty, 1)):
-        np.add.at(f[:, col], a, length * (2 * t[a] + t[b]) / 6)
-        np.add.at(f[:, col], b, length * (t[a] + 2 * t[b]) / 6)
+    prescribed = np.where(
+        loaded[:, None], np.stack([profile(pos[:, 1]), profile(pos[:, 1])], 1), 0.0
+    )  # [N, 2]
     K = elasticity_matrix(pos, tri, 1.0, poisson)
-    free = np.repeat(~clamped, 2)
-    u = np.zeros(2 * n)
-    u[free] = spla.spsolve(K[free][:, free].tocsc(), f.ravel()[free])
-    x = np.stack([clamped, loaded, tx, ty, pos[:, 0], pos[:, 1]], 1).astype(float)
-    return _data(pos, tri, x, u.reshape(n, 2), ~clamped, loaded)
+    fixed = np.repeat(clamped | loaded, 2)
+    u = prescribed.ravel().copy()
+    u[~fixed] = spla.spsolve(K[~fixed][:, ~fixed].tocsc(), -K[~fixed][:, fixed] @ u[fixed])
+    x = np.concatenate([np.stack([clamped, loaded], 1), prescribed, pos], 1).astype(float)
+    return _data(pos, tri, x, u.reshape(n, 2), ~(clamped | loaded), loaded)
 
 
 def smoothing_sample(num_nodes: int, seed: int) -> Data:

@@ -32,15 +32,22 @@ class EmbeddingConv(MessagePassing):
         channels: Size :math:`d` of node and edge embeddings.
         mlp_channels: Hidden width of the MLPs (paper: 128).
         aggr: ``"max"``, ``"sum"``, ``"mean"`` or a ``torch_geometric.nn.aggr.Aggregation``.
+        mlp_norm: Whether the MLPs normalise their input (:class:`~torch_ampn.nn.LayerNormMLP`).
         **kwargs: Further arguments of :class:`torch_geometric.nn.conv.MessagePassing`.
     """
 
     def __init__(
-        self, channels: int, mlp_channels: int = 128, aggr: str | Aggregation = "max", **kwargs
+        self,
+        channels: int,
+        mlp_channels: int = 128,
+        aggr: str | Aggregation = "max",
+        mlp_norm: bool = True,
+        **kwargs,
     ) -> None:
         super().__init__(aggr=check_aggr(aggr), **kwargs)
         self.channels = channels
         self.mlp_channels = mlp_channels
+        self.mlp_norm = bool(mlp_norm)
 
     def residual(self) -> nn.Linear:
         r"""A bias-free ``d -> d`` map :math:`\mathbf{W}`."""
@@ -48,7 +55,7 @@ class EmbeddingConv(MessagePassing):
 
     def mlp(self, num_inputs: int) -> LayerNormMLP:
         """An MLP :math:`f` of ``num_inputs`` concatenated embeddings: ``[*, num_inputs d] -> [*, d]``."""
-        return LayerNormMLP(num_inputs * self.channels, self.channels, self.mlp_channels)
+        return LayerNormMLP(num_inputs * self.channels, self.channels, self.mlp_channels, norm=self.mlp_norm)
 
     def reset_parameters(self) -> None:
         """Reset the aggregation, every residual map and every MLP."""

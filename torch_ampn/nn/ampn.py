@@ -108,6 +108,9 @@ class AMPN(nn.Module):
             online normalisers do. Without it, inputs must be scaled by the user: mesh edge
             features of a fine mesh are ``O(h)``, far below a fresh linear layer's reach.
         normalize_batches: Training batches whose statistics the normalisers accumulate.
+        mlp_norm: Whether the layers' MLPs start with a layer normalisation (the paper's). Without
+            it, an MLP keeps the scale of its input, so an answer proportional to the data (a
+            linear PDE's) is easier to represent.
 
     Example:
         >>> from torch_ampn.transforms import AMGHierarchy
@@ -138,6 +141,7 @@ class AMPN(nn.Module):
         coarse_inputs: str = "none",
         normalize: bool = False,
         normalize_batches: int = 100,
+        mlp_norm: bool = True,
     ) -> None:
         super().__init__()
         if num_levels < 1:
@@ -160,6 +164,7 @@ class AMPN(nn.Module):
         self.coarse_inputs = coarse_inputs
         self.normalize = bool(normalize)
         self.normalize_batches = int(normalize_batches)
+        self.mlp_norm = bool(mlp_norm)
         aggr = check_aggr(aggr)
         self.aggr = aggr if isinstance(aggr, str) else repr(aggr)  # a template module is not registered
         self.mlp_channels = mlp_channels
@@ -182,10 +187,15 @@ class AMPN(nn.Module):
             self.edge_encoders[UP] = nn.Linear(width[UP], d)
 
         def intra(n: int) -> nn.ModuleList:
-            return nn.ModuleList(IntraLevelConv(d, h, copy.deepcopy(aggr), contact=contact) for _ in range(n))
+            return nn.ModuleList(
+                IntraLevelConv(d, h, copy.deepcopy(aggr), contact=contact, mlp_norm=mlp_norm)
+                for _ in range(n)
+            )
 
         def inter(n: int) -> nn.ModuleList:
-            return nn.ModuleList(InterLevelConv(d, h, copy.deepcopy(aggr)) for _ in range(n))
+            return nn.ModuleList(
+                InterLevelConv(d, h, copy.deepcopy(aggr), mlp_norm=mlp_norm) for _ in range(n)
+            )
 
         self.pre = intra(pre_layers)
         self.solve = intra(solve_layers)
@@ -469,6 +479,7 @@ class AMPN(nn.Module):
             + (", transfer_weights=True" if self.transfer_weights else "")
             + (f", coarse_inputs={self.coarse_inputs!r}" if self.coarse_inputs != "none" else "")
             + (", normalize=True" if self.normalize else "")
+            + ("" if self.mlp_norm else ", mlp_norm=False")
         )
 
 

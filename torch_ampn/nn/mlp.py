@@ -13,24 +13,29 @@ class LayerNormMLP(nn.Module):
         f(\mathbf{x}) = \mathbf{W}_2 \, \mathrm{SiLU}\left(\mathbf{W}_1 \,
         \mathrm{LayerNorm}(\mathbf{x}) + \mathbf{b}_1\right) + \mathbf{b}_2
 
-    i.e. ``LayerNorm(in) -> Linear(in, hidden) -> SiLU -> Linear(hidden, out)``.
+    i.e. ``LayerNorm(in) -> Linear(in, hidden) -> SiLU -> Linear(hidden, out)``; with
+    ``norm=False`` without the layer normalisation (the MLP then keeps the scale of its input,
+    which a problem whose answer is proportional to its data needs: see :class:`~torch_ampn.nn.AMPN`).
 
     Args:
         in_channels: Size of each input sample.
         out_channels: Size of each output sample.
         hidden_channels: Width of the hidden layer (paper: 128).
+        norm: Whether to normalise the input (paper: yes).
 
     Shapes:
         - **input:** :math:`(*, F_{in})`
         - **output:** :math:`(*, F_{out})`
     """
 
-    def __init__(self, in_channels: int, out_channels: int, hidden_channels: int = 128) -> None:
+    def __init__(
+        self, in_channels: int, out_channels: int, hidden_channels: int = 128, norm: bool = True
+    ) -> None:
         super().__init__()
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.hidden_channels = hidden_channels
-        self.norm = nn.LayerNorm(in_channels)
+        self.norm = nn.LayerNorm(in_channels) if norm else None
         self.lin1 = nn.Linear(in_channels, hidden_channels)
         self.act = nn.SiLU()
         self.lin2 = nn.Linear(hidden_channels, out_channels)
@@ -38,13 +43,14 @@ class LayerNormMLP(nn.Module):
 
     def reset_parameters(self) -> None:
         """Reset all learnable parameters."""
-        self.norm.reset_parameters()
+        if self.norm is not None:
+            self.norm.reset_parameters()
         self.lin1.reset_parameters()
         self.lin2.reset_parameters()
 
     def forward(self, x: Tensor) -> Tensor:
         """Apply the MLP: ``[*, in_channels] -> [*, out_channels]``."""
-        return self.lin2(self.act(self.lin1(self.norm(x))))
+        return self.lin2(self.act(self.lin1(x if self.norm is None else self.norm(x))))
 
     def forward_edges(
         self,
@@ -82,6 +88,8 @@ class LayerNormMLP(nn.Module):
             raise ValueError(
                 f"feature sizes {f_dst} + {f_src} + {f_edge} do not add up to in_channels={self.in_channels}"
             )
+        if self.norm is None:
+            return self._forward_edges_plain(x_dst, x_src, edge_attr, edge_index, residual)
         weight = self.lin1.weight * self.norm.weight  # [H, F]: W_1 diag(gamma)
         # W_1 diag(gamma) (c - mean(c)) = W' c with a rank-one correction of the weight:
         weight = weight - weight.sum(-1, keepdim=True) / self.in_channels  # [H, F]
@@ -116,10 +124,28 @@ class LayerNormMLP(nn.Module):
         out = self.lin2(hidden)  # [E, out]
         return out if residual is None else out + res
 
+    def _forward_edges_plain(
+        self, x_dst: Tensor, x_src: Tensor, edge_attr: Tensor, edge_index: Tensor, residual: Tensor | None
+    ) -> Tensor:
+        """:meth:`forward_edges` without the layer normalisation: ``[E, out_channels]``."""
+        f_dst, f_src = x_dst.size(-1), x_src.size(-1)
+        w_dst, w_src, w_edge = self.lin1.weight.split([f_dst, f_src, edge_attr.size(-1)], dim=-1)
+        src, dst = edge_index
+        if residual is None:
+            z_edge = edge_attr @ w_edge.t()  # [E, H]
+        else:
+            z_edge, res = (edge_attr @ torch.cat([w_edge, residual]).t()).split(
+                [w_edge.size(0), residual.size(0)], dim=-1
+            )  # [E, H], [E, out]
+        z = (x_dst @ w_dst.t()).index_select(0, dst) + (x_src @ w_src.t()).index_select(0, src) + z_edge
+        out = self.lin2(self.act(z + self.lin1.bias))  # [E, out]
+        return out if residual is None else out + res
+
     def __repr__(self) -> str:
+        norm = "" if self.norm is not None else ", norm=False"
         return (
             f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
-            f"hidden_channels={self.hidden_channels})"
+            f"hidden_channels={self.hidden_channels}{norm})"
         )
 
 
