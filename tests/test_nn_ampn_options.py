@@ -100,7 +100,16 @@ def test_online_normalisation_accumulates_the_training_batches_then_freezes(mesh
 def test_a_batch_of_hierarchies_with_fewer_levels_is_refused_before_any_computation():
     small = AMGHierarchy(max_levels=2, min_coarse_nodes=4)(laplace_sample(300, seed=2))
     big = AMGHierarchy(max_levels=3, min_coarse_nodes=4)(laplace_sample(600, seed=3))
-    del small.face, big.face  # graph attributes of different widths do not batch
     model = AMPN(4, 1, 3, hidden_channels=8, mlp_channels=8, num_levels=3)
     with pytest.raises(ValueError, match="levels"):
         model(Batch.from_data_list([big, small]))
+
+
+def test_triangles_travel_on_l0_and_batch_with_offsets():
+    to_hierarchy = AMGHierarchy(num_levels=3, min_coarse_nodes=4)
+    a, b = to_hierarchy(laplace_sample(500, seed=4)), to_hierarchy(laplace_sample(500, seed=5))
+    batch = Batch.from_data_list([a, b])
+    na, ta = a["l0"].num_nodes, a["l0"].face.size(1)
+    assert torch.equal(batch["l0"].face[:, :ta], a["l0"].face)
+    assert torch.equal(batch["l0"].face[:, ta:], b["l0"].face + na)  # offset like a PyG Data's faces
+    assert torch.equal(batch.get_example(1)["l0"].face, b["l0"].face)

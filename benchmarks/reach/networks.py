@@ -3,12 +3,12 @@
 Every network maps a hierarchy (:class:`~torch_ampn.hierarchy.HierarchicalData`, the flat ones
 read only ``l0``) to ``[N, out]``:
 
-* ``ampn``: :class:`~torch_ampn.nn.AMPN` with the generic defaults (the reference width ``d``);
-* ``ampn_paper``: the seed paper's V-cycle (max aggregation everywhere, no prolongator weights,
-  coarse nodes from their level encoding, no input normalisation) at the same width: the lever
-  study's starting point, and ``ampn_*`` variants with one lever changed (see :data:`AMPN_VARIANTS`);
-* ``flat``: the MeshGraphNet-style processor (``num_levels=1``, Pre + Solve + Post), widened to
-  the AMPN's parameter count;
+* ``ampn``: :class:`~torch_ampn.nn.AMPN` with the package's defaults (the reference width ``d``);
+* ``ampn_paper``: the seed paper's V-cycle (max aggregation, layer-normalised MLPs, no input
+  normalisation) at the same width, and ``ampn_*`` variants with one lever changed (see
+  :data:`AMPN_VARIANTS`);
+* ``flat``: the MeshGraphNet-style processor (``num_levels=1``, Pre + Solve + Post, the same
+  defaults), widened to the AMPN's parameter count;
 * ``flat_deep``: a flat processor with as many layers as the AMPN makes layer calls per
   prediction (its V-cycle reuses each stack on every level), narrowed to the same count;
 * ``graph_unet``: PyG's ``GraphUNet`` (GCN layers, top-k pooling), width matched.
@@ -27,20 +27,20 @@ from torch_ampn.nn import AMPN
 
 #: The generic AMPN's layer stacks in this benchmark (the paper's: 3, 2, 5, 3, 2).
 STACKS = dict(pre_layers=2, down_layers=1, solve_layers=4, post_layers=2, up_layers=1)
-#: AMPN options of each variant; ``ampn`` is the package's generic default.
+#: AMPN options of each variant, over the package's defaults (``ampn``).
 AMPN_VARIANTS: dict[str, dict] = {
     "ampn": {},
-    "ampn_paper": dict(aggr="max", transfer_weights=False, coarse_inputs="none", normalize=False),
-    "ampn_max": dict(aggr="max"),
-    "ampn_no_weights": dict(transfer_weights=False),
-    "ampn_no_restrict": dict(coarse_inputs="none"),
-    "ampn_no_normalize": dict(normalize=False),
+    "ampn_paper": dict(
+        aggr="max", mlp_norm=True, normalize=False, transfer_weights=False, coarse_inputs="none"
+    ),
     "ampn_mlp_norm": dict(mlp_norm=True),
-    "ampn_no_mlp_norm": dict(mlp_norm=False),
+    "ampn_max": dict(aggr="max"),
     "ampn_mean": dict(aggr="mean"),
+    "ampn_no_normalize": dict(normalize=False),
+    "ampn_no_transfer_weights": dict(transfer_weights=False),
+    "ampn_no_restrict": dict(coarse_inputs="none"),
+    "ampn_plain": dict(transfer_weights=False, coarse_inputs="none"),
 }
-#: What the generic default is in this benchmark (the AMPN's own defaults may differ).
-GENERIC = dict(aggr="sum", transfer_weights=True, coarse_inputs="restrict", normalize=True, mlp_norm=False)
 
 
 def count(model: nn.Module) -> int:
@@ -100,7 +100,7 @@ def build(
     """The network ``name`` at the parameter count of the ``ampn`` of width ``width``."""
 
     def ampn(d: int, **options) -> AMPN:
-        kw = {**GENERIC, "num_levels": num_levels, **STACKS, **options}
+        kw = {"num_levels": num_levels, **STACKS, **options}
         return AMPN(in_channels, out_channels, edge_channels, hidden_channels=d, mlp_channels=d, **kw)
 
     reference = count(ampn(width))

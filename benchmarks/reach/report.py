@@ -1,6 +1,6 @@
 """The reach benchmark's table and figure from the cells that ``run.py`` wrote.
 
-    python benchmarks/reach/report.py            # benchmarks/results/reach/{table.json,table.md,reach.png}
+    python benchmarks/reach/report.py            # benchmarks/results/reach/{table.json,table.md,table.png}
     python benchmarks/reach/report.py --cells benchmarks/results/reach/levers --name levers
 
 ``table.json``: per problem, mesh size and network, the relative L2 error's mean and standard
@@ -97,8 +97,17 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+COLORS = {"ampn": "C0", "flat": "C1", "flat_deep": "C2", "graph_unet": "C3"}
+
+
+def _rank(network: str) -> tuple:
+    """Sort key: the four networks of :data:`ORDER` first, in order, then the others by name."""
+    return (network not in ORDER, ORDER.index(network) if network in ORDER else 0, network)
+
+
 def figure(rows: list[dict], path: Path) -> None:
-    """Error against mesh size (one panel per problem) and against hop distance at the largest size."""
+    """Error against mesh size (one panel per problem), and against hop distance at the size where
+    the AMPN's error is lowest (its reach is then not limited by training)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -109,31 +118,34 @@ def figure(rows: list[dict], path: Path) -> None:
     for col, problem in enumerate(problems):
         mine = [r for r in rows if r["problem"] == problem]
         networks = sorted(
-            {r["network"] for r in mine}, key=lambda n: (ORDER.index(n) if n in ORDER else 99, n)
+            {r["network"] for r in mine},
+            key=lambda n: (n not in ORDER, ORDER.index(n) if n in ORDER else 0, n),
         )
-        largest = max(r["size"] for r in mine)
-        for network in networks:
+        ampn = [r for r in mine if r["network"] == "ampn"] or mine
+        at = min(ampn, key=lambda r: r["rel_l2_mean"])["size"]
+        for i, network in enumerate(networks):
+            style = dict(
+                color=COLORS.get(network, f"C{4 + i}"), marker="o", label=LABELS.get(network, network)
+            )
             line = sorted((r for r in mine if r["network"] == network), key=lambda r: r["size"])
             axes[0, col].errorbar(
                 [r["nodes"] for r in line],
                 [r["rel_l2_mean"] for r in line],
                 yerr=[r["rel_l2_std"] for r in line],
-                marker="o",
                 capsize=3,
-                label=LABELS.get(network, network),
+                **style,
             )
-            big = [r for r in line if r["size"] == largest]
-            if big:
-                hop = big[0]["by_hop"]
-                axes[1, col].plot([b["hops_from"] for b in hop], [b["rel_l2"] for b in hop], marker="o")
+            for r in line:
+                if r["size"] == at:
+                    hop = r["by_hop"]
+                    axes[1, col].plot([b["hops_from"] for b in hop], [b["rel_l2"] for b in hop], **style)
+        nodes = next(r["nodes"] for r in mine if r["size"] == at)
         axes[0, col].set(xscale="log", yscale="log", xlabel="mesh nodes", title=problem)
-        axes[1, col].set(
-            xscale="symlog", yscale="log", xlabel=f"hops from the data ({largest:,}-node meshes)", ylabel=None
-        )
+        axes[1, col].set(xscale="symlog", yscale="log", xlabel=f"hops from the data ({nodes:,}-node meshes)")
         axes[0, col].grid(True, which="both", alpha=0.3)
         axes[1, col].grid(True, which="both", alpha=0.3)
     axes[0, 0].set_ylabel("relative L2 error")
-    axes[1, 0].set_ylabel("relative L2 error (bin)")
+    axes[1, 0].set_ylabel("relative L2 error (hop bin)")
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

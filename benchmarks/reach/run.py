@@ -6,7 +6,7 @@ budget on the dataset of :mod:`data` and writes its result to
 file exists are skipped, so an interrupted grid resumes. ``report.py`` makes the table and figure.
 
     python benchmarks/reach/run.py --problems laplace elasticity smoothing \\
-        --sizes 1000 4000 16000 50000 --budget 90 120 240 360 \\
+        --sizes 50000 16000 4000 1000 --budget 300 180 120 60 \\
         --networks ampn flat flat_deep graph_unet --seeds 0 1 2
 
 Training: Adam, learning rate ``--lr`` with a 5 % linear warm-up and a cosine decay over the
@@ -77,8 +77,8 @@ def train(
             optimizer.step()
             steps += 1
             losses.append(float(loss.detach()))
-            bar.n = round(min(time.perf_counter() - start, budget))
             bar.set_postfix(loss=f"{sum(losses[-20:]) / len(losses[-20:]):.3g}", steps=steps, refresh=False)
+            bar.update(round(min(time.perf_counter() - start, budget)) - bar.n)  # seconds so far
     seconds = time.perf_counter() - start
     return {
         "steps": steps,
@@ -148,6 +148,7 @@ def run_cell(problem: str, size: int, network: str, seed: int, args: argparse.Na
         "network": network,
         "seed": seed,
         "parameters": count(model),
+        "options": (model.model if hasattr(model, "model") else model).extra_repr(),
         "layer_calls": layer_calls(levels) if network.startswith("ampn") else None,
         "budget_seconds": args.budget_seconds,
         "lr": args.lr,

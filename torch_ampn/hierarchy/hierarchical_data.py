@@ -185,9 +185,16 @@ class HierarchicalData(HeteroData):
             m = _LEVEL_RE.match(store._key)
             if m is not None and int(m.group(1)) > 0:
                 return self[level_name(int(m.group(1)) - 1)].num_nodes
-        if key == "contact_nbr" and isinstance(store, NodeStorage):
-            return store.num_nodes  # fixed-size contact table: indices into its own level
+        if key in ("contact_nbr", "face") and isinstance(store, NodeStorage):
+            return store.num_nodes  # a contact table or triangles: indices into its own level
         return super().__inc__(key, value, store, *args, **kwargs)
+
+    def __cat_dim__(
+        self, key: str, value: Any, store: NodeStorage | EdgeStorage | None = None, *args, **kwargs
+    ) -> Any:
+        if key == "face" and isinstance(store, NodeStorage):
+            return -1  # [3, T] triangles of the level, as in a PyG Data
+        return super().__cat_dim__(key, value, store, *args, **kwargs)
 
     # ---- files -----------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:

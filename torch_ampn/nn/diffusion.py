@@ -166,6 +166,12 @@ class RobinAMPN(AMPN):
             relations=(MESH, CONTACT),
             num_level_frequencies=num_level_frequencies,
             cond_channels=0 if step_encoding is None else step_encoding.out_channels,
+            # the seed paper's V-cycle, whatever the generic AMPN's defaults: the forming
+            # surrogates normalise their own inputs and were tuned with these
+            transfer_weights=False,
+            coarse_inputs="none",
+            normalize=False,
+            mlp_norm=True,
         )
         self.fine_in_channels = fine_in_channels
         self.noise_channels = noise_channels

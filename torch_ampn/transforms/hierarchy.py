@@ -30,7 +30,8 @@ class AMGHierarchy(BaseTransform):
     :class:`~torch_ampn.hierarchy.HierarchicalData`:
 
     * level ``l0`` holds every node attribute of the input (``x``, ``y``, ``pos``, ``pos0``,
-      ``component``, ...), its mesh edges are the input's ``edge_index`` as given;
+      ``component``, ...) and its triangles ``face`` ``[3, T]`` if any (batched like a PyG
+      ``Data``'s), its mesh edges are the input's ``edge_index`` as given;
     * a coarse level ``lk`` holds the positions ``pos`` (and ``pos0``) and the ``component`` ids of
       its root fine nodes (:meth:`~torch_ampn.hierarchy.HierarchicalData.fine_index`) and ``root``;
     * with ``edge_features`` (default), every mesh, down and up edge gets the seed paper's
@@ -136,8 +137,8 @@ class AMGHierarchy(BaseTransform):
         for key, value in data.items():
             if key in _STRUCTURE:
                 continue
-            if isinstance(value, Tensor) and data.is_node_attr(key):
-                fine[key] = value
+            if isinstance(value, Tensor) and (data.is_node_attr(key) or key == "face"):
+                fine[key] = value  # node attributes, and the triangles [3, T] of a mesh
             elif not data.is_edge_attr(key):
                 h[key] = value
         pos0 = data.pos0 if "pos0" in data else None
