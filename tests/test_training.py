@@ -716,11 +716,12 @@ def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network()
     import inspect
 
     from torch_ampn.forming import AMPNSurrogate
-    from torch_ampn.nn import AMPN
+    from torch_ampn.nn import RobinAMPN
     from torch_ampn.training.module import SURROGATE_ARGUMENTS
 
     module = inspect.signature(AMPNLightningModule).parameters
-    owners = {**inspect.signature(AMPN).parameters, **inspect.signature(AMPNSurrogate).parameters}
+    # the forming network is RobinAMPN (the paper's settings), not the generic AMPN's defaults
+    owners = {**inspect.signature(RobinAMPN).parameters, **inspect.signature(AMPNSurrogate).parameters}
     for name in SURROGATE_ARGUMENTS:
         assert name in module and name in owners, name
         assert module[name].default == owners[name].default, name
