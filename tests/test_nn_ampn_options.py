@@ -113,3 +113,30 @@ def test_triangles_travel_on_l0_and_batch_with_offsets():
     assert torch.equal(batch["l0"].face[:, :ta], a["l0"].face)
     assert torch.equal(batch["l0"].face[:, ta:], b["l0"].face + na)  # offset like a PyG Data's faces
     assert torch.equal(batch.get_example(1)["l0"].face, b["l0"].face)
+
+
+def test_normalisation_reaches_the_network_and_leaves_the_input_alone(mesh):
+    # the same weights, once normalising inside, once fed inputs standardised by hand
+    torch.manual_seed(0)
+    sizes = dict(hidden_channels=8, mlp_channels=8, num_levels=3)
+    inside = AMPN(4, 1, 3, **sizes, normalize=True, normalize_batches=1).double()
+    plain = AMPN(4, 1, 3, **sizes).double()
+    plain.load_state_dict({k: v for k, v in inside.state_dict().items() if k in plain.state_dict()})
+    h = mesh.clone()
+    for store in h.stores:
+        for key, value in store.items():
+            if torch.is_tensor(value) and value.is_floating_point():
+                store[key] = value.double()
+    inside.train()
+    inside(h)  # accumulates the statistics of this one batch, then frozen
+    inside.eval()
+    x_before = h["l0"].x.clone()
+    out = inside(h)
+    assert torch.equal(h["l0"].x, x_before)  # the caller's data is not changed
+    scaled = h.clone()
+    scaled["l0"].x = (h["l0"].x - h["l0"].x.mean(0)) / h["l0"].x.std(0, unbiased=False)
+    for key in scaled.edge_types:
+        e = h[key].edge_attr
+        scaled[key].edge_attr = (e - e.mean(0)) / e.std(0, unbiased=False)
+    torch.testing.assert_close(out, plain.eval()(scaled))
+    assert not torch.allclose(out, plain(h))  # and normalising changes the result

@@ -30,13 +30,11 @@ STACKS = dict(pre_layers=2, down_layers=1, solve_layers=4, post_layers=2, up_lay
 #: AMPN options of each variant, over the package's defaults (``ampn``).
 AMPN_VARIANTS: dict[str, dict] = {
     "ampn": {},
-    "ampn_paper": dict(
-        aggr="max", mlp_norm=True, normalize=False, transfer_weights=False, coarse_inputs="none"
-    ),
+    "ampn_paper": dict(aggr="max", mlp_norm=True, transfer_weights=False, coarse_inputs="none"),
     "ampn_mlp_norm": dict(mlp_norm=True),
     "ampn_max": dict(aggr="max"),
     "ampn_mean": dict(aggr="mean"),
-    "ampn_no_normalize": dict(normalize=False),
+    "ampn_normalize": dict(normalize=True),
     "ampn_no_transfer_weights": dict(transfer_weights=False),
     "ampn_no_restrict": dict(coarse_inputs="none"),
     "ampn_plain": dict(transfer_weights=False, coarse_inputs="none"),
