@@ -16,7 +16,7 @@ import torch
 from tqdm import tqdm
 
 from torch_ampn.datasets import hop_distance, reach_sample
-from torch_ampn.hierarchy import HierarchicalData, edge_type, level_name
+from torch_ampn.hierarchy import HierarchicalData, level_name
 from torch_ampn.transforms import AMGHierarchy
 
 CACHE = Path(os.environ.get("AMPN_REACH_DATA", "data/reach"))
@@ -77,6 +77,3 @@ def load(problem: str, size: int, n_train: int | None = None, n_test: int = 4) -
 def describe(h: HierarchicalData) -> str:
     """``"50625 / 6134 / 388 / 22 nodes"``."""
     return " / ".join(str(h[level_name(k)].num_nodes) for k in range(h.num_levels)) + " nodes"
-
-
-__all__ = ["describe", "edge_type", "load", "make", "num_train", "truncate"]
