@@ -1,7 +1,7 @@
 """The reach benchmark: where does an AMG hierarchy pay? Trains and tests networks on steady problems.
 
 Every cell (problem, mesh size, network, seed) trains one network for the same wall-clock
-budget on the dataset of :mod:`data` and writes its result to
+budget on the dataset of :mod:`reach_data` and writes its result to
 ``benchmarks/results/reach/cells/PROBLEM_SIZE_NETWORK_sSEED.json`` (atomically); cells whose
 file exists are skipped, so an interrupted grid resumes. ``report.py`` makes the table and figure.
 
@@ -32,8 +32,8 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from networks import UNet, build, count, layer_calls  # noqa: E402
+from reach_data import describe, load  # noqa: E402  (benchmarks/reach/, beside this script)
 
-from data import describe, load  # noqa: E402  (benchmarks/reach/, beside this script)
 from torch_ampn.datasets import PROBLEMS  # noqa: E402
 
 RESULTS = Path("benchmarks/results/reach")
