@@ -170,3 +170,24 @@ def test_the_prior_recipe_adds_the_prior_to_the_quickstart(tmp_path, monkeypatch
     for key in ("hidden_channels", "num_levels", "contact_k", "pushforward"):
         assert hp[key] == quick["model"][key]  # the rest is the quickstart's
     assert dm.hparams.num_train == quick["data"]["num_train"]
+
+
+#: Every public recipe: a config and the overlays given after it.
+RECIPES = [[name] for name in NAMES] + [
+    ["quickstart.yaml", "quickstart_prior.yaml"],
+    ["direct.yaml", "quickstart_direct.yaml"],
+]
+
+
+def test_no_two_recipes_write_to_the_same_folder(tmp_path, monkeypatch):
+    """A recipe's checkpoints, logs and reports never overwrite another's (the version counter is off)."""
+    monkeypatch.chdir(tmp_path)
+    seen: dict[str, str] = {}
+    for recipe in RECIPES:
+        args = [a for name in recipe for a in ("--config", str(CONFIGS / name))]
+        cli = main([*args, "--trainer.accelerator", "cpu"], run=False)
+        checkpoints = {str(c.dirpath) for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)}
+        folders = {*checkpoints, str(cli.trainer.default_root_dir), str(cli.model.hparams.output_dir)}
+        for folder in folders:
+            other = seen.setdefault(folder, " + ".join(recipe))
+            assert other == " + ".join(recipe), f"{folder}: written by {other} and by {' + '.join(recipe)}"

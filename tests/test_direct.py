@@ -278,6 +278,15 @@ def test_a_model_file_round_trip_and_a_file_of_the_other_kind_is_refused(tiny_da
         ValueError, match=r"direct\.pt: field 'kind': a DirectSurrogate model, not a AMPNSurrogate"
     ):
         AMPNSurrogate.load(path)
+    from torch_ampn.forming import load_surrogate
+
+    any_kind = load_surrogate(path)  # the class the file names
+    assert type(any_kind) is DirectSurrogate and not any_kind.training
+    torch.testing.assert_close(predict_direct(any_kind, [traj], h)[0], predict_direct(loaded, [traj], h)[0])
+    payload = torch.load(path, weights_only=True)
+    torch.save({**payload, "kind": "Foo"}, tmp_path / "foo.pt")
+    with pytest.raises(ValueError, match=r"foo\.pt: field 'kind': 'Foo' is not one of"):
+        load_surrogate(tmp_path / "foo.pt")
 
 
 def test_the_mean_base_as_an_input_is_the_float64_mean_at_the_chosen_steps(tiny_data, tmp_path):

@@ -43,6 +43,9 @@ def test_a_model_file_rolls_out_as_its_checkpoint_does(model_file):
         module.surrogate.state_dict().items(), loaded.state_dict().items(), strict=True
     ):
         assert torch.equal(a, b), name
+    from torch_ampn.forming import load_surrogate
+
+    assert torch.equal(_rollout(load_surrogate(model_file)), _rollout(loaded))  # any kind: the file names it
     assert torch.equal(_rollout(loaded), _rollout(module.surrogate))
     # a plain torch file: arguments as JSON text, the weights as tensors
     payload = torch.load(model_file, weights_only=True)

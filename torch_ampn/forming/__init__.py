@@ -5,7 +5,7 @@ a forming trajectory (:class:`~torch_ampn.data.HierarchicalData`) into the paper
 (:mod:`torch_ampn.forming.features`), normalises them (:class:`Normalizer`) and predicts the
 next ply displacements with a :class:`~torch_ampn.nn.RobinAMPN`; :class:`DirectSurrogate` predicts
 every step of a trajectory at once from the initial state and the settings. :func:`ampn_channels`
-gives the sizes they need for these features.
+gives the sizes they need for these features; :func:`load_surrogate` reads a model file of either.
 """
 
 from torch_ampn.forming.direct import DirectSurrogate
@@ -24,6 +24,7 @@ from torch_ampn.forming.features import (
     prior_features,
     step_features,
 )
+from torch_ampn.forming.model_file import load_surrogate
 from torch_ampn.forming.normalizer import Normalizer
 from torch_ampn.forming.surrogate import AMPNSurrogate
 
@@ -38,6 +39,7 @@ __all__ = [
     "fine_node_features",
     "gripper_features",
     "hierarchical_features",
+    "load_surrogate",
     "node_type_one_hot",
     "num_coarse_node_features",
     "num_edge_features",

@@ -15,6 +15,44 @@ from torch_ampn.utils.io import atomic_torch_save, load_torch_file
 MODEL_FILE_FORMAT, MODEL_FILE_VERSION = "torch-ampn surrogate", 1
 
 
+def _read(path: str | os.PathLike) -> dict[str, Any]:
+    """A model file's payload, its ``format`` and ``version`` checked (one-line errors)."""
+    payload = load_torch_file(path, "torch-ampn model file")
+    if not isinstance(payload, dict) or payload.get("format") != MODEL_FILE_FORMAT:
+        raise ValueError(
+            f"{path}: not a torch-ampn model file (field 'format'); write one with torch-ampn export"
+        )
+    if int(payload.get("version", 0)) > MODEL_FILE_VERSION:
+        version = payload["version"]
+        raise ValueError(f"{path}: field 'version': {version} is newer than this torch-ampn reads")
+    return payload
+
+
+def load_surrogate(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Any:
+    """The surrogate of any model file, of the class its ``kind`` field names, in eval mode.
+
+    ``torch-ampn export`` writes next-step (:class:`~torch_ampn.forming.AMPNSurrogate`) and
+    direct (:class:`~torch_ampn.forming.DirectSurrogate`) models alike; this reads either, and
+    :func:`torch_ampn.rollout.rollout` predicts a trajectory with either.
+
+    Example:
+        >>> surrogate = load_surrogate("model.pt")  # doctest: +SKIP
+        >>> type(surrogate).__name__  # doctest: +SKIP
+        'DirectSurrogate'
+
+    Raises:
+        ValueError: One line naming the file and field, if it is not a readable model file.
+    """
+    from torch_ampn.forming.direct import DirectSurrogate
+    from torch_ampn.forming.surrogate import AMPNSurrogate
+
+    kinds: dict[str, type[ModelFile]] = {c.__name__: c for c in (AMPNSurrogate, DirectSurrogate)}
+    kind = _read(path).get("kind", "AMPNSurrogate")
+    if kind not in kinds:
+        raise ValueError(f"{path}: field 'kind': {kind!r} is not one of {sorted(kinds)}")
+    return kinds[kind].load(path, map_location)
+
+
 class ModelFile:
     """Mixin of the surrogates: :meth:`save` and :meth:`load` of a model file.
 
@@ -67,17 +105,13 @@ class ModelFile:
             ValueError: One line naming the file and field, if it is not a readable model file
                 of this class.
         """
-        payload = load_torch_file(path, "torch-ampn model file")
-        if not isinstance(payload, dict) or payload.get("format") != MODEL_FILE_FORMAT:
-            raise ValueError(
-                f"{path}: not a torch-ampn model file (field 'format'); write one with torch-ampn export"
-            )
-        if int(payload.get("version", 0)) > MODEL_FILE_VERSION:
-            version = payload["version"]
-            raise ValueError(f"{path}: field 'version': {version} is newer than this torch-ampn reads")
+        payload = _read(path)
         kind = payload.get("kind", "AMPNSurrogate")
         if kind != cls.__name__:
-            raise ValueError(f"{path}: field 'kind': a {kind} model, not a {cls.__name__} (use {kind}.load)")
+            raise ValueError(
+                f"{path}: field 'kind': a {kind} model, not a {cls.__name__} "
+                f"(use {kind}.load, or load_surrogate for any kind)"
+            )
         try:
             arguments, meta = json.loads(payload["arguments"]), json.loads(payload["meta"])
         except (KeyError, TypeError, ValueError) as err:
