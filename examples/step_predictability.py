@@ -1,7 +1,8 @@
 """How predictable is the next step of a dataset? One-step references from the data alone.
 
     python examples/step_predictability.py data/default/test [--every 5]
-    python examples/step_predictability.py data/default/test --ckpt outputs/quickstart/checkpoints/best.ckpt
+    python examples/step_predictability.py data/default/test \
+        --ckpt outputs/quickstart_nextstep/checkpoints/best.ckpt
         (a next-step model's checkpoint: `torch-ampn fit --config examples/configs/quickstart.yaml`)
 
 For every step t of the trajectories in a folder, over ply nodes, averaged over trajectories:

@@ -121,3 +121,34 @@ def test_samples_are_deterministic_and_differ_by_seed():
     a, b, c = laplace_sample(500, 7), laplace_sample(500, 7), laplace_sample(500, 8)
     assert torch.equal(a.y, b.y) and torch.equal(a.pos, b.pos)
     assert not torch.equal(a.x[:, 1], c.x[:, 1])
+
+
+@pytest.mark.parametrize("problem", ["laplace", "elasticity", "smoothing"])
+def test_the_target_is_linear_in_the_data_channels(problem):
+    """What ``--augment`` relies on: scaling ``x[:, data_channels]`` by ``a`` scales ``y`` by ``a``.
+
+    Checked against the sample's own FE system solved again in float64 with the data scaled
+    (Laplace, elasticity: the Dirichlet values on the data nodes; smoothing: the noisy field).
+    """
+    from torch_ampn.datasets import PROBLEMS, reach_sample
+
+    data, a = reach_sample(problem, 600, seed=3), -2.5
+    channels = PROBLEMS[problem]["data_channels"]
+    pos, tri = data.pos.double().numpy(), data.face.t().numpy()
+    x, y = data.x.double().numpy(), data.y.double().numpy()
+    n = len(pos)
+    if problem == "smoothing":
+        M = mass_matrix(pos, tri)
+        again = (M @ (a * x[:, 0])) / np.asarray(M.sum(axis=1)).ravel()
+        np.testing.assert_allclose(again, a * y[:, 0], atol=1e-5)
+        return
+    dofs = len(channels)
+    K = stiffness_matrix(pos, tri) if problem == "laplace" else elasticity_matrix(pos, tri, 1.0, 0.3)
+    fixed = np.repeat(~data.mask.numpy(), dofs)  # the Dirichlet nodes: data (scaled) or clamped (0)
+    u = np.zeros(n * dofs)
+    u[fixed] = a * y.reshape(-1)[fixed]
+    np.testing.assert_allclose(
+        a * x[:, channels][data.source.numpy()], u.reshape(n, dofs)[data.source.numpy()], atol=1e-5
+    )
+    u[~fixed] = spsolve(K[~fixed][:, ~fixed].tocsc(), -K[~fixed][:, fixed] @ u[fixed])
+    np.testing.assert_allclose(u.reshape(n, dofs), a * y, atol=1e-4)

@@ -93,12 +93,22 @@ def layer_calls(num_levels: int) -> int:
 
 
 def build(
-    name: str, in_channels: int, out_channels: int, edge_channels: int, num_levels: int, width: int
+    name: str,
+    in_channels: int,
+    out_channels: int,
+    edge_channels: int,
+    num_levels: int,
+    width: int,
+    common: dict | None = None,
 ) -> nn.Module:
-    """The network ``name`` at the parameter count of the ``ampn`` of width ``width``."""
+    """The network ``name`` at the parameter count of the ``ampn`` of width ``width``.
+
+    ``common``: :class:`AMPN` options given to every AMPN-built network (the AMPNs and both flat
+    ones), e.g. ``{"normalize": True}``; the variant's own options override them.
+    """
 
     def ampn(d: int, **options) -> AMPN:
-        kw = {"num_levels": num_levels, **STACKS, **options}
+        kw = {"num_levels": num_levels, **STACKS, **(common or {}), **options}
         return AMPN(in_channels, out_channels, edge_channels, hidden_channels=d, mlp_channels=d, **kw)
 
     reference = count(ampn(width))

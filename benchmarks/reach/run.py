@@ -15,6 +15,14 @@ budget), one batch of about 4k nodes per step (one mesh from 4k nodes on), MSE o
 divided by its training RMS on the nodes the error is measured on. The error: the relative L2
 error ``||u_pred - u|| / ||u||`` over those nodes of every test mesh, averaged over the test
 meshes, and per bin of hop distance from the data the answer depends on.
+
+Levers of the training (each recorded in the cell, and named by ``--tag``): ``--normalize``
+gives every AMPN-built network (the AMPNs and both flat ones) online input normalisation
+(``AMPN(normalize=True)``; GraphUNet always standardises its inputs); ``--augment`` multiplies
+the data channels of every training sample (``PROBLEMS[problem]["data_channels"]``) and its
+target by one random ``a ~ N(0, 1)`` per sample and step. Every problem is linear in its data,
+so the scaled sample is an exact sample of the same problem: a network then sees every
+amplitude and sign of the data instead of the training set's few.
 """
 
 from __future__ import annotations
@@ -55,9 +63,18 @@ def learning_rate(lr: float, fraction: float) -> float:
 
 
 def train(
-    model: torch.nn.Module, samples: list, scale: torch.Tensor, budget: float, lr: float, seed: int
+    model: torch.nn.Module,
+    samples: list,
+    scale: torch.Tensor,
+    budget: float,
+    lr: float,
+    seed: int,
+    augment: list[int] | None = None,
 ) -> dict:
-    """Train for ``budget`` seconds; returns steps and seconds."""
+    """Train for ``budget`` seconds; returns steps and seconds.
+
+    ``augment``: the data channels to scale, with the target, by ``a ~ N(0, 1)`` per sample.
+    """
     generator = torch.Generator().manual_seed(seed)
     per_batch = max(1, NODES_PER_BATCH // samples[0]["l0"].num_nodes)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
@@ -69,8 +86,16 @@ def train(
                 group["lr"] = learning_rate(lr, elapsed / budget)
             pick = torch.randperm(len(samples), generator=generator)[:per_batch].tolist()
             batch = Batch.from_data_list([samples[i] for i in pick]) if per_batch > 1 else samples[pick[0]]
-            mask = batch["l0"].mask
-            loss = (model(batch)[mask] - batch["l0"].y[mask] / scale).square().mean()
+            mask, x, y = batch["l0"].mask, batch["l0"].x, batch["l0"].y  # x [N, F], y [N, C]
+            if augment:
+                a = torch.randn(per_batch, generator=generator)  # [B]: one factor per sample
+                a = a[batch["l0"].batch][:, None] if per_batch > 1 else a[:, None]  # [N, 1] or [1, 1]
+                scaled = x.clone()
+                scaled[:, augment] = x[:, augment] * a
+                batch["l0"].x = scaled
+                y = y * a
+            loss = (model(batch)[mask] - y[mask] / scale).square().mean()
+            batch["l0"].x = x  # the stored sample stays as it was
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -132,12 +157,16 @@ def run_cell(problem: str, size: int, network: str, seed: int, args: argparse.Na
     levels = min(levels, args.max_levels)
     torch.manual_seed(seed)
     edge_channels = train_set[0]["l0", "mesh", "l0"].edge_attr.size(1)
-    model = build(network, spec["in_channels"], spec["out_channels"], edge_channels, levels, args.width)
+    common = {"normalize": True} if args.normalize else {}
+    model = build(
+        network, spec["in_channels"], spec["out_channels"], edge_channels, levels, args.width, common
+    )
     if isinstance(model, UNet):
         model.fit_inputs([h["l0"].x for h in train_set])
     y = torch.cat([h["l0"].y[h["l0"].mask] for h in train_set])
     scale = y.square().mean(0).sqrt()  # [C]: the target's RMS per channel
-    fit = train(model, train_set, scale, args.budget_seconds, args.lr, seed)
+    augment = spec["data_channels"] if args.augment else None
+    fit = train(model, train_set, scale, args.budget_seconds, args.lr, seed, augment)
     result = evaluate(model, test_set, scale)
     return {
         "problem": problem,
@@ -153,6 +182,8 @@ def run_cell(problem: str, size: int, network: str, seed: int, args: argparse.Na
         "budget_seconds": args.budget_seconds,
         "lr": args.lr,
         "width": args.width,
+        "normalize": args.normalize,
+        "augment": args.augment,
         "train_meshes": len(train_set),
         "test_meshes": len(test_set),
         "torch_threads": torch.get_num_threads(),
@@ -184,6 +215,12 @@ def main() -> None:
     parser.add_argument("--max-levels", type=int, default=6)
     parser.add_argument(
         "--threads", type=int, default=1, help="torch threads (two cells can run side by side)"
+    )
+    parser.add_argument(
+        "--normalize", action="store_true", help="online input normalisation in every AMPN-built network"
+    )
+    parser.add_argument(
+        "--augment", action="store_true", help="scale each sample's data and target by a ~ N(0, 1)"
     )
     parser.add_argument("--tag", default="", help="appended to the cell names (a lever study's own cells)")
     parser.add_argument("--out", type=Path, default=RESULTS / "cells")

@@ -2,8 +2,8 @@
 
     torch-ampn fit --config examples/configs/quickstart.yaml
     torch-ampn test --config examples/configs/quickstart.yaml \
-        --ckpt_path outputs/quickstart/checkpoints/best.ckpt
-    torch-ampn predict --ckpt_path CKPT --data.predict_file settings.yaml
+        --ckpt_path outputs/quickstart_nextstep/checkpoints/best.ckpt
+    torch-ampn predict --ckpt_path CKPT --data.predict_file examples/predict_settings.yaml
 
 The model's contact settings and level count are linked into the data module (the
 training windows are built with the same contact edges the model rolls out with), and

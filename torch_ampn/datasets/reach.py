@@ -33,15 +33,28 @@ from scipy.spatial import Delaunay
 from torch import Tensor
 from torch_geometric.data import Data
 
-#: Input channels, output channels and what they are, per problem.
+#: Input channels, output channels and what they are, per problem. Every problem is linear in its
+#: data: scaling the ``data_channels`` of ``x`` by ``a`` scales ``y`` by ``a`` (the augmentation
+#: of ``benchmarks/reach/run.py --augment``, checked in ``tests/test_reach_problems.py``).
 PROBLEMS = {
-    "laplace": {"in_channels": 4, "out_channels": 1, "inputs": "boundary flag, g on the boundary, x, y"},
+    "laplace": {
+        "in_channels": 4,
+        "out_channels": 1,
+        "inputs": "boundary flag, g on the boundary, x, y",
+        "data_channels": [1],
+    },
     "elasticity": {
         "in_channels": 6,
         "out_channels": 2,
         "inputs": "clamped flag, loaded flag, prescribed displacement (x, y) on the loaded edge, x, y",
+        "data_channels": [2, 3],
     },
-    "smoothing": {"in_channels": 4, "out_channels": 1, "inputs": "noisy field, boundary flag, x, y"},
+    "smoothing": {
+        "in_channels": 4,
+        "out_channels": 1,
+        "inputs": "noisy field, boundary flag, x, y",
+        "data_channels": [0],
+    },
 }
 
 
