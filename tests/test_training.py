@@ -871,3 +871,24 @@ def test_a_fit_killed_with_sigkill_resumes_bit_for_bit(tiny_fit, tmp_path):
     assert states_a.keys() == states_b.keys()
     for i in states_a:
         assert all(torch.equal(states_a[i][key], states_b[i][key]) for key in states_a[i])
+
+
+def test_the_data_module_interface_is_declared_and_a_fit_without_it_is_refused(data_dir):
+    """AMPNDataModule is a ForecastDataSource; a plain LightningDataModule is not, and a fit from
+    scratch on it stops in one line before any step (the statistics need the interface)."""
+    from torch.utils.data import DataLoader
+
+    from torch_ampn.training import ForecastDataSource
+
+    assert isinstance(_datamodule(data_dir), ForecastDataSource)
+    windows = list(_datamodule(data_dir).statistics_samples(4))
+
+    class Plain(L.LightningDataModule):
+        def train_dataloader(self):
+            return DataLoader(windows, batch_size=None)
+
+    assert not isinstance(Plain(), ForecastDataSource)
+    module = AMPNLightningModule(**SMALL_MODEL)
+    with pytest.raises(RuntimeError, match="ForecastDataSource's methods"):
+        _quiet_trainer(2).fit(module, datamodule=Plain())
+    assert module.trainer.global_step == 0

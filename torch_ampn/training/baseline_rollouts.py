@@ -10,6 +10,7 @@ from torch import Tensor
 from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
 from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.training.items import RolloutItem
+from torch_ampn.training.protocol import forecast_source
 
 
 class BaselineRollouts:
@@ -35,10 +36,10 @@ class BaselineRollouts:
         Returns ``(baselines, reason)``: ``reason`` says why no setting-aware baseline is
         reported (no training split, fewer than 2 trajectories, ...), else ``None``.
         """
-        if not hasattr(datamodule, "training_trajectories"):
-            return cls(touch_radii), "no training split to fit them on"
-        fitted = datamodule.fitted_baselines() if hasattr(datamodule, "fitted_baselines") else {}
-        setting, reason = fit_setting_baselines(datamodule.training_trajectories(), fitted)
+        source = forecast_source(datamodule)
+        if source is None:
+            return cls(touch_radii), "no training split to fit them on (not a ForecastDataSource)"
+        setting, reason = fit_setting_baselines(source.training_trajectories(), source.fitted_baselines())
         return cls(touch_radii, setting), reason
 
     def rmse(self, item: RolloutItem) -> dict[str, Tensor]:

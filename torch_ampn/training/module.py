@@ -20,6 +20,7 @@ from torch_ampn.training.compiled_loss import CompiledLoss
 from torch_ampn.training.free_cpu import FollowFreeCpu
 from torch_ampn.training.inputs import add_training_noise, pushforward_inputs
 from torch_ampn.training.items import RolloutItem, gather_objects
+from torch_ampn.training.protocol import forecast_source
 from torch_ampn.training.report import TestReport, write_prediction
 from torch_ampn.training.rng import restore_rng_states, rng_states
 from torch_ampn.training.schedule import WarmupExponentialDecay
@@ -329,8 +330,8 @@ class AMPNLightningModule(L.LightningModule):
                     _check_writable(Path(folder), name)
         if stage == "fit":
             self._prepare_fit(datamodule)
-        elif datamodule is not None and hasattr(datamodule, "check_model"):
-            datamodule.check_model(self.surrogate)
+        elif (source := forecast_source(datamodule)) is not None:
+            source.check_model(self.surrogate)
 
     def configure_model(self) -> None:
         """Before a fit: :meth:`_prepare_fit` (the statistics, and a direct model's mean base).
@@ -354,14 +355,17 @@ class AMPNLightningModule(L.LightningModule):
         trainer = None if self._trainer is None else id(self.trainer)
         if trainer is not None and trainer == self._fit_prepared_for:
             return
-        if datamodule is not None and hasattr(datamodule, "check_model"):
-            datamodule.check_model(self.surrogate)
-        if datamodule is not None and hasattr(datamodule, "mesh_keys"):
-            self._training_meshes = datamodule.mesh_keys("train")
+        source = forecast_source(datamodule)
+        if source is not None:
+            source.check_model(self.surrogate)
+            self._training_meshes = source.mesh_keys("train")
         if not self.surrogate.statistics_frozen:
-            if datamodule is None or not hasattr(datamodule, "statistics_samples"):
-                raise RuntimeError("fitting needs an AMPNDataModule (for the normalisation statistics)")
-            self.fit_statistics(datamodule.statistics_samples(self.hparams.statistics_samples))
+            if source is None:
+                raise RuntimeError(
+                    "fitting needs a data module with torch_ampn.training.ForecastDataSource's methods "
+                    "(AMPNDataModule has them), for the normalisation statistics"
+                )
+            self.fit_statistics(source.statistics_samples(self.hparams.statistics_samples))
         self._fit_prepared_for = trainer
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -519,11 +523,11 @@ class AMPNLightningModule(L.LightningModule):
 
     def _check_meshes(self, split: str) -> None:
         """With ``check_mesh``: ``ValueError`` if a trajectory of ``split`` has a mesh not trained on."""
-        datamodule = getattr(self.trainer, "datamodule", None)
+        source = forecast_source(getattr(self.trainer, "datamodule", None))
         if not (self.hparams.get("check_mesh", True) and self._training_meshes):
             return
-        if hasattr(datamodule, "check_meshes"):
-            datamodule.check_meshes(self._training_meshes, split)
+        if source is not None:
+            source.check_meshes(self._training_meshes, split)
 
     def on_validation_epoch_start(self) -> None:
         """Start collecting the validation trajectories' RMSE (outside ``fit``: check their meshes first)."""
