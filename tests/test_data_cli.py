@@ -268,3 +268,29 @@ def test_energy_command_prints_plots_and_refuses_data_without_a_balance(tmp_path
     ).save(old)
     assert data_cli.main(["energy", str(old)]) == 2
     assert f"{old}: field 'meta' has no 'energy'" in capsys.readouterr().err
+
+
+def test_every_chunk_is_simulated_on_one_thread_whatever_the_callers_count(tmp_path, monkeypatch):
+    """A trajectory's last bits depend on the thread count of its (compiled) reductions: in process
+    (one worker, or one shard's one chunk) a chunk runs on one thread, as in a worker process, and
+    the caller's count comes back afterwards. Two thread counts of the caller make the same bytes."""
+    seen = []
+    real = dataset_module.simulate_batch
+
+    def recording(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dataset_module, "simulate_batch", recording)
+    options = dict(workers=1, batch=1, compile=False, progress=False, config=TINY)
+    before = torch.get_num_threads()
+    try:
+        for threads, folder in ((2, "two"), (1, "one")):
+            torch.set_num_threads(threads)
+            generate_dataset(tmp_path / folder, 2, 0, 0, **options)
+            assert torch.get_num_threads() == threads  # restored
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 1, 1, 1]
+    for name in ("train/traj_000000.pt", "train/traj_000001.pt"):
+        assert (tmp_path / "two" / name).read_bytes() == (tmp_path / "one" / name).read_bytes(), name

@@ -84,10 +84,15 @@ def _simulate_chunk(args: tuple) -> list[str]:
     family's chunk is one job, whose ``part`` goes into the trajectory's ``meta["part"]``.
     """
     cfg_dict, jobs, write, root, compile_, device, *part = args
-    if mp.parent_process() is not None:
-        torch.set_num_threads(1)  # a worker process: one per core (in-process, the caller's count stays)
-    cfg = StampFormingConfig.from_dict(cfg_dict)
-    trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
+    # one thread, in a worker process and in the caller's alike: a reduction's summation order,
+    # and so a trajectory's last bits, then do not depend on the worker count, the shard or the cores
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cfg = StampFormingConfig.from_dict(cfg_dict)
+        trajs = simulate_batch(cfg, [seed for _, seed in jobs], compile=compile_, device=device)
+    finally:
+        torch.set_num_threads(threads)
     out = []
     for (split, seed), traj, wanted in zip(jobs, trajs, write, strict=True):
         if part and part[0] is not None:
@@ -142,7 +147,8 @@ def generate_dataset(
 
     The trajectories are simulated in fixed chunks of ``batch`` consecutive (split, seed)
     jobs, the same for every run of the same split sizes, so that a trajectory is always
-    simulated in the same batch (with ``compile`` its last bits depend on the batch). With
+    simulated in the same batch (with ``compile`` its last bits depend on the batch), and every
+    chunk is simulated on one thread (its last bits would depend on the thread count too). With
     ``shard=(i, n)`` only chunks ``i, i + n, i + 2n, ...`` are simulated: ``n`` jobs with
     ``i = 0 .. n-1``, in any order, on any machines sharing the folder (or copied together
     afterwards), make the same files as one job. Rerunning a job completes what it left.
