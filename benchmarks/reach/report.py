@@ -29,11 +29,17 @@ LABELS = {
 
 
 def collect(cells: Path) -> dict:
-    """``{(problem, size, network): [cell, ...]}`` of every cell file."""
+    """``{(problem, size, network + tag): [cell, ...]}`` of every cell file.
+
+    The tag (``run.py --tag``, a lever's name such as ``_norm``) comes from the file name,
+    ``PROBLEM_SIZE_NETWORK{TAG}_sSEED.json``, so that tagged cells never merge with untagged ones.
+    """
     out = defaultdict(list)
     for path in sorted(cells.glob("*.json")):
         cell = json.loads(path.read_text())
-        out[(cell["problem"], cell["size"], cell["network"])].append(cell)
+        prefix = f"{cell['problem']}_{cell['size']}_"
+        name = path.stem[len(prefix) : path.stem.rindex("_s")]
+        out[(cell["problem"], cell["size"], name)].append({**cell, "tag": name[len(cell["network"]) :]})
     return out
 
 
@@ -49,6 +55,7 @@ def summarise(groups: dict) -> list[dict]:
                 "nodes": cells[0]["nodes"],
                 "levels": cells[0]["levels"],
                 "network": network,
+                "tag": cells[0]["tag"],
                 "seeds": sorted(c["seed"] for c in cells),
                 "rel_l2_mean": statistics.fmean(errors),
                 "rel_l2_std": statistics.stdev(errors) if len(errors) > 1 else 0.0,
@@ -77,7 +84,7 @@ def _mean_by_hop(cells: list[dict]) -> list[dict]:
 
 def markdown(rows: list[dict]) -> str:
     """The table: one line per problem, size and network, the AMPN's error over each network's."""
-    ampn = {(r["problem"], r["size"]): r for r in rows if r["network"] == "ampn"}
+    by_name = {(r["problem"], r["size"], r["network"]): r for r in rows}
     lines = [
         "| problem | nodes | network | parameters | relative L2 error | seeds | AMPN / this | steps "
         "| s / step | s / prediction |",
@@ -85,7 +92,10 @@ def markdown(rows: list[dict]) -> str:
     ]
     rank = {name: i for i, name in enumerate(ORDER)}
     for r in sorted(rows, key=lambda r: (r["problem"], r["size"], rank.get(r["network"], 99), r["network"])):
-        ref = ampn.get((r["problem"], r["size"]))
+        # the AMPN with the same lever (tag), else the plain one
+        ref = by_name.get((r["problem"], r["size"], "ampn" + r["tag"])) or by_name.get(
+            (r["problem"], r["size"], "ampn")
+        )
         ratio = f"{ref['rel_l2_mean'] / r['rel_l2_mean']:.2f}" if ref else "-"
         err = f"{r['rel_l2_mean']:.3f}" + (f" ± {r['rel_l2_std']:.3f}" if len(r["seeds"]) > 1 else "")
         lines.append(

@@ -182,6 +182,7 @@ def run_cell(problem: str, size: int, network: str, seed: int, args: argparse.Na
         "budget_seconds": args.budget_seconds,
         "lr": args.lr,
         "width": args.width,
+        "tag": args.tag,
         "normalize": args.normalize,
         "augment": args.augment,
         "train_meshes": len(train_set),
