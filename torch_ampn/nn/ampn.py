@@ -113,9 +113,11 @@ class AMPN(nn.Module):
         normalize: Standardise the ``l0`` inputs (and ``data["lk"].x``) and every edge
             relation's features, per level, with statistics accumulated in training mode over the
             first ``normalize_batches`` batches (then frozen; kept in the state dict), as
-            MeshGraphNets' online normalisers do (default ``False``, as in the paper: the reach
-            benchmark's results were measured without it). Without it, inputs must be scaled by
-            the user: mesh edge features of a fine mesh are ``O(h)``.
+            MeshGraphNets' online normalisers do (default ``True``; ``False`` is the paper's).
+            Without it, inputs must be scaled by the user (mesh edge features of a fine mesh are
+            ``O(h)``, a boundary value on a few nodes is mostly zeros). On the reach benchmark it
+            is what makes the plate-elasticity problem learnable (relative L2 0.32 against 1.26
+            in 600 s) and it does not hurt Laplace's equation (0.113 against 0.131-0.139).
         normalize_batches: Training batches whose statistics the normalisers accumulate.
         mlp_norm: Whether the layers' MLPs start with a layer normalisation (the paper's; default
             ``False``). Without it, an MLP keeps the scale of its input, so an answer proportional
@@ -150,7 +152,7 @@ class AMPN(nn.Module):
         cond_channels: int = 0,
         transfer_weights: bool = True,
         coarse_inputs: str = "restrict",
-        normalize: bool = False,
+        normalize: bool = True,
         normalize_batches: int = 100,
         mlp_norm: bool = False,
     ) -> None:
