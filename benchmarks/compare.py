@@ -132,9 +132,15 @@ BASE_CONFIGS = {"coarse": "examples/configs/quickstart.yaml", "paper": "examples
 
 
 # ---- configs ------------------------------------------------------------------------------------
+def model_args(config: dict) -> dict:
+    """A config's model arguments: ``model.init_args`` where the config names the class, else ``model``."""
+    model = config.setdefault("model", {})
+    return model.setdefault("init_args", {}) if "class_path" in model else model
+
+
 def _set(config: dict, dotted: str, value: Any) -> None:
     section, key = dotted.split(".", 1)
-    config.setdefault(section, {})[key] = value
+    (model_args(config) if section == "model" else config.setdefault(section, {}))[key] = value
 
 
 def cell_config(
@@ -158,8 +164,7 @@ def cell_config(
         logger.setdefault("init_args", {})["save_dir"] = str(cell_dir)
     others = [c for c in trainer.get("callbacks") or [] if not c["class_path"].endswith("ModelCheckpoint")]
     trainer["callbacks"] = checkpoint_callbacks(cell_dir / "checkpoints") + others
-    model = config.setdefault("model", {})
-    model.update(output_dir=str(cell_dir / "test"), rollout_seed=seed)
+    model_args(config).update(output_dir=str(cell_dir / "test"), rollout_seed=seed)
     config.setdefault("data", {})["data_dir"] = str(args.data_dir)
     for dotted, value in changes.items():
         _set(config, dotted, value)
@@ -183,7 +188,7 @@ def checkpoint_callbacks(dirpath: Path) -> list[dict[str, Any]]:
 
 def applicable(variant: str, base: dict) -> bool:
     """``k3`` only where the base config uses another k."""
-    return variant != "k3" or base.get("model", {}).get("contact_k", 3) != 3
+    return variant != "k3" or model_args(copy.deepcopy(base)).get("contact_k", 3) != 3
 
 
 # ---- one cell -------------------------------------------------------------------------------------
@@ -305,12 +310,10 @@ def _contact_edges_per_step(module, trajectories: list, hierarchies) -> dict[str
 def measure(cell_dir: Path, config: dict, args: argparse.Namespace) -> dict[str, Any]:
     """In-process measurements of a fitted and tested cell (see the module docstring)."""
     from torch_ampn.testing import count_parameters
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import load_module
     from torch_ampn.training.datamodule import AMPNDataModule
 
-    module = AMPNLightningModule.load_from_checkpoint(
-        cell_dir / "checkpoints" / "best.ckpt", map_location="cpu"
-    )
+    module = load_module(cell_dir / "checkpoints" / "best.ckpt", map_location="cpu")
     device = torch.device(args.device)
     module = module.to(device).eval()
     hp = module.hparams
@@ -436,7 +439,7 @@ def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
     """
     from torch_ampn.data import TrajectoryDataset
     from torch_ampn.sim import StampFormingConfig, simulate_batch
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import load_module
     from torch_ampn.training.datamodule import AMPNDataModule
 
     spec = json.loads((args.data_dir / "dataset.json").read_text())
@@ -463,7 +466,7 @@ def timings(args: argparse.Namespace, base: dict) -> dict[str, Any]:
         ckpts = sorted(args.results.glob(f"{variant}_seed*.ckpt"))
         if not ckpts:
             continue
-        module = AMPNLightningModule.load_from_checkpoint(ckpts[0], map_location=args.device).eval()
+        module = load_module(ckpts[0], map_location=args.device).eval()
         hp = module.hparams
         prior = VARIANTS[variant].changes.get("data.prior")
         dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=hp.num_levels, prior=prior)
@@ -556,7 +559,7 @@ def table(
                 row["r2"], row["r2_std"] = _mean_std(r2)
             row.update(layers=done[0]["layers"], parameters=done[0]["parameters"], steps=done[0]["steps"])
             row["layer_applications"] = done[0].get("layer_applications") or layer_applications(
-                (base or {}).get("model", {}), done[0]["num_levels"]
+                model_args(copy.deepcopy(base or {})), done[0]["num_levels"]
             )
             row["simulator_seconds"] = _mean_std([c["simulator"]["fastest"] for c in done])[0]
         rows.append(row)

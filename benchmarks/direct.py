@@ -68,10 +68,9 @@ def number(value: object) -> object:
 
 def parameters(model: dict) -> int:
     """Parameters of the direct model of these ``model`` settings."""
-    from torch_ampn.cli.train import MODULE_DEFAULTS
-    from torch_ampn.training.module import build_surrogate
+    from torch_ampn.training import DirectLightningModule
 
-    return sum(p.numel() for p in build_surrogate({**MODULE_DEFAULTS, **model}).parameters())
+    return sum(p.numel() for p in DirectLightningModule(**model).surrogate.parameters())
 
 
 def variant_model(name: str, base: dict) -> dict:
@@ -111,7 +110,7 @@ def run(
     changes = changes or {}
     data_changes = {k.removeprefix("data."): v for k, v in changes.items() if k.startswith("data.")}
     model_changes = {k: v for k, v in changes.items() if not k.startswith("data.")}
-    model = variant_model(variant, {**config["model"], **model_changes})
+    model = variant_model(variant, {**config["model"]["init_args"], **model_changes})
     name = run_name(variant, tag)
     out = work / f"{name}_{data_dir.name}_s{seed}_t{steps}"
     config["seed_everything"] = seed
@@ -123,7 +122,7 @@ def run(
     for callback in config["trainer"]["callbacks"]:
         if "dirpath" in callback.get("init_args", {}):
             callback["init_args"]["dirpath"] = str(out / "checkpoints")
-    config["model"] = {**model, "output_dir": str(out / "report"), "export_xdmf": False}
+    config["model"]["init_args"] = {**model, "output_dir": str(out / "report"), "export_xdmf": False}
     config["data"].update(data_dir=str(data_dir), generate=False, **data_changes)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "config.yaml"

@@ -29,7 +29,7 @@ from torch_ampn.baselines import fitted_prior
 from torch_ampn.data import Trajectory, TrajectoryDataset
 from torch_ampn.rollout import rollout_rmse
 from torch_ampn.rollout.direct import predict_direct
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule
+from torch_ampn.training import AMPNDataModule, load_module
 from torch_ampn.utils.io import atomic_write_text
 
 
@@ -57,7 +57,7 @@ def main() -> None:
         n = int(n_text)
         if not 1 <= n <= len(train_set):
             raise ValueError(f"--run {n_text}: the dataset has {len(train_set)} training trajectories")
-        module = AMPNLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+        module = load_module(ckpt, map_location="cpu").eval()
         dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=module.hparams.num_levels)
         hierarchy = dm.hierarchies(test[0])
         train = [train_set[i] for i in range(n)]

@@ -141,13 +141,12 @@ def simulator_time(resolution: str, cfg: StampFormingConfig, settings: list, rec
 def load_model(checkpoint: Path | None, cfg: StampFormingConfig):
     """The trained direct surrogate, or the config's architecture with one setting's statistics."""
     if checkpoint is not None:
-        from torch_ampn.training import AMPNLightningModule
+        from torch_ampn.training import load_module
 
-        return AMPNLightningModule.load_from_checkpoint(checkpoint, map_location="cpu").surrogate.eval()
-    from torch_ampn.cli.train import MODULE_DEFAULTS
-    from torch_ampn.training.module import build_surrogate
+        return load_module(checkpoint).surrogate.eval()
+    from torch_ampn.training import DirectLightningModule
 
-    model = build_surrogate({**MODULE_DEFAULTS, **yaml.safe_load(CONFIG.read_text())["model"]})
+    model = DirectLightningModule(**yaml.safe_load(CONFIG.read_text())["model"]["init_args"]).surrogate
     traj = process_trajectory(cfg, [0.5, 0.5], [50.0, 50.0])
     sample = model.contact(direct_sample(traj, HierarchyCache(None, max_levels=model.num_levels)(traj)))
     model.accumulate_statistics(sample)  # the cost does not depend on the statistics

@@ -28,7 +28,7 @@ import torch
 from torch_ampn.baselines import fitted_prior
 from torch_ampn.data import TrajectoryDataset
 from torch_ampn.rollout.direct import predict_direct
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule
+from torch_ampn.training import AMPNDataModule, load_module
 from torch_ampn.utils.io import atomic_write_text
 
 RINGS = ((0.0, 25.0), (25.0, 50.0), (50.0, 65.0), (65.0, float("inf")))  # mm from the ply's centre
@@ -54,7 +54,7 @@ def main() -> None:
     if not 1 <= args.train <= len(train_set):
         raise ValueError(f"--train {args.train}: the dataset has {len(train_set)} training trajectories")
     test = list(TrajectoryDataset(args.data_dir, "test", max_cached_mb=0))
-    module = AMPNLightningModule.load_from_checkpoint(args.checkpoint, map_location="cpu").eval()
+    module = load_module(args.checkpoint, map_location="cpu").eval()
     dm = AMPNDataModule(str(args.data_dir), generate=False, max_levels=module.hparams.num_levels)
     pod_gp = fitted_prior("pod_gp", [train_set[i] for i in range(args.train)])
     ply = test[0].ply_mask

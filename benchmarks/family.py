@@ -298,11 +298,11 @@ def figure(family: dict, args: argparse.Namespace, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import load_module
     from torch_ampn.training.datamodule import AMPNDataModule
     from torch_ampn.viz import plot_laminate
 
-    module = AMPNLightningModule.load_from_checkpoint(ROOT / family["checkpoint"], map_location="cpu").eval()
+    module = load_module(ROOT / family["checkpoint"], map_location="cpu").eval()
     cases = best_and_worst(family)
     fig = plt.figure(figsize=(10, 3.4 * len(cases)))
     fig.subplots_adjust(left=0.0, right=0.88, bottom=0.02, top=0.96, hspace=0.25, wspace=0.0)

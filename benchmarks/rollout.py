@@ -80,10 +80,10 @@ class Timed:
 def setting(args: argparse.Namespace) -> tuple[StampFormingConfig, dict]:
     """Simulator config and network settings of the benchmark."""
     if args.resolution == "coarse":
-        model = yaml.safe_load((ROOT / "examples/configs/quickstart.yaml").read_text())["model"]
+        model = yaml.safe_load((ROOT / "examples/configs/quickstart.yaml").read_text())["model"]["init_args"]
         cfg = StampFormingConfig()
     else:
-        model = yaml.safe_load((ROOT / "examples/configs/paper.yaml").read_text())["model"]
+        model = yaml.safe_load((ROOT / "examples/configs/paper.yaml").read_text())["model"]["init_args"]
         scale = math.sqrt(args.mesh_scale)
         base = StampFormingConfig.paper()
         cfg = StampFormingConfig.paper(

@@ -48,7 +48,7 @@ class QuickstartCase:
     """A model, its optimiser and a fixed list of batches for one variant."""
 
     def __init__(self, data_dir: str, settings: dict, num_batches: int, compile_network: bool) -> None:
-        from torch_ampn.training import AMPNDataModule, AMPNLightningModule
+        from torch_ampn.training import AMPNDataModule, NextStepLightningModule
 
         torch.manual_seed(0)
         kw = {**QUICKSTART, **settings}
@@ -57,13 +57,13 @@ class QuickstartCase:
             contact_k=kw["contact_k"], cache_windows=True,
         )  # fmt: skip
         dm.setup("fit")
-        self.model = AMPNLightningModule(**kw, compile_network=compile_network)
+        self.model = NextStepLightningModule(**kw, compile_network=compile_network)
         self.model.fit_statistics(dm.statistics_samples(20))
         loader = iter(dm.train_dataloader())
         self.batches = [next(loader) for _ in range(num_batches)]
         self.optimizer = torch.optim.Adam(self.model.parameters(), 1e-4)
         self.compile_s = None
-        if compile_network:  # the first step compiles (AMPNLightningModule.training_loss)
+        if compile_network:  # the first step compiles (NextStepLightningModule.training_loss)
             start = time.perf_counter()
             self.step(self.batches[0])
             self.compile_s = time.perf_counter() - start

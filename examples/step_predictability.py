@@ -49,7 +49,7 @@ def step_statistics(traj: Trajectory) -> dict[str, torch.Tensor]:
 
 
 def model_step_errors(module, traj: Trajectory, hierarchy, seed: int = 0) -> torch.Tensor:
-    """Teacher-forced one-step RMSE over ply nodes of ``module`` (an ``AMPNLightningModule``), ``[T]``.
+    """Teacher-forced one-step RMSE over ply nodes of ``module`` (a ``NextStepLightningModule``), ``[T]``.
 
     At every step t the model gets the true window (t-1, t) (:func:`~torch_ampn.data.dataset.step_sample`
     with contact edges from the true positions) and its predicted residual is compared with x^t - x^{t-1}.
@@ -91,16 +91,14 @@ def main() -> None:
         from tqdm.auto import tqdm
 
         from torch_ampn.data.dataset import HierarchyCache
-        from torch_ampn.training import AMPNLightningModule
+        from torch_ampn.training import NextStepLightningModule
 
         if not args.ckpt.is_file():
             raise SystemExit(f"{args.ckpt}: no such checkpoint")
-        module = AMPNLightningModule.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
-        if not hasattr(module.surrogate, "predict_residual"):
-            raise SystemExit(
-                f"{args.ckpt}: model.mode {module.hparams.mode!r} predicts no next step; give a next-step "
-                "model's checkpoint (e.g. from examples/configs/quickstart.yaml)"
-            )
+        try:
+            module = NextStepLightningModule.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
+        except ValueError as err:  # a direct model's: it predicts no next step
+            raise SystemExit(f"{err} (e.g. from examples/configs/quickstart.yaml)") from None
         hierarchies = HierarchyCache(
             args.folder.parent / "cache",
             max_levels=module.surrogate.num_levels,

@@ -17,7 +17,12 @@ from helpers import checkpoint_steps  # noqa: E402
 from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: E402
 
 from torch_ampn.cli.train import main  # noqa: E402
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
+from torch_ampn.training import (  # noqa: E402
+    AMPNDataModule,
+    DirectLightningModule,
+    NextStepLightningModule,
+    SurrogateLightningModule,
+)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "examples" / "configs"
 NAMES = [
@@ -37,6 +42,11 @@ def _build(name, tmp_path, monkeypatch):
     return cli, yaml.safe_load((CONFIGS / name).read_text())
 
 
+def model_args(config: dict) -> dict:
+    """A config's model arguments: ``model.init_args`` (a first config) or ``model`` (an overlay)."""
+    return config["model"].get("init_args", {k: v for k, v in config["model"].items() if k != "class_path"})
+
+
 def _same(a, b):
     """Equal, floats up to rounding (YAML's ``1.0e-4`` vs the parsed value)."""
     if isinstance(b, float) and not isinstance(a, bool):
@@ -48,10 +58,11 @@ def _same(a, b):
 def test_config_builds_model_data_and_trainer(name, tmp_path, monkeypatch):
     cli, config = _build(name, tmp_path, monkeypatch)
     model, dm, trainer = cli.model, cli.datamodule, cli.trainer
-    assert isinstance(model, AMPNLightningModule) and isinstance(dm, AMPNDataModule)
+    assert isinstance(model, SurrogateLightningModule) and isinstance(dm, AMPNDataModule)
+    assert type(model).__name__ == config["model"]["class_path"].rsplit(".", 1)[1]
 
     # every model and data value of the YAML reaches the instantiated modules
-    for key, value in config["model"].items():
+    for key, value in model_args(config).items():
         assert _same(model.hparams[key], value), f"model.{key}: {model.hparams[key]!r} != {value!r}"
     for key, value in config["data"].items():
         assert _same(dm.hparams[key], value), f"data.{key}: {dm.hparams[key]!r} != {value!r}"
@@ -66,9 +77,12 @@ def test_config_builds_model_data_and_trainer(name, tmp_path, monkeypatch):
     assert [len(s) for s in (net.pre, net.down, net.solve, net.post, net.up)] == layers
     assert net.num_layers == sum(layers)
     assert surrogate.contact.k == hp.contact_k and surrogate.contact.r == hp.contact_radius
-    if hp.mode == "direct":  # the data module yields whole trajectories for it (the CLI's link)
+    if isinstance(
+        model, DirectLightningModule
+    ):  # the data module yields whole trajectories for it (the CLI's link)
         assert type(surrogate).__name__ == "DirectSurrogate" and dm.hparams.mode == "direct"
     else:
+        assert isinstance(model, NextStepLightningModule)
         assert surrogate.diffusion_steps == hp.diffusion_steps == 1
         assert model._compiled_network is (
             None if hp.compile_network else False
@@ -141,12 +155,12 @@ def test_the_main_jobs_configs_are_the_direct_model_without_message_passing(tmp_
     cli = main([a for name in names for a in ("--config", str(CONFIGS / name))], run=False)
     direct, extra = (yaml.safe_load((CONFIGS / name).read_text()) for name in names)
     hp = cli.model.hparams
-    assert hp.mode == "direct" and hp.num_levels == 1
+    assert isinstance(cli.model, DirectLightningModule) and hp.num_levels == 1
     assert hp.pre_layers == hp.solve_layers == hp.post_layers == 0
     assert cli.model.surrogate.target_scale == "step"
     assert not any(isinstance(m, MessagePassing) for m in cli.model.surrogate.modules())
     for key in ("hidden_channels", "decoder_modes", "base", "lr", "loss_steps"):
-        assert hp[key] == direct["model"][key]  # the rest is direct.yaml's
+        assert hp[key] == model_args(direct)[key]  # the rest is direct.yaml's
     assert cli.trainer.max_steps == extra["trainer"]["max_steps"]
     assert cli.datamodule.hparams.num_train == direct["data"]["num_train"]
     # everything it writes lands in outputs/quickstart, as the job says
@@ -168,7 +182,7 @@ def test_the_prior_recipe_adds_the_prior_to_the_quickstart(tmp_path, monkeypatch
     assert cli.model.surrogate.prior_features
     assert cli.trainer.max_steps == extra["trainer"]["max_steps"]
     for key in ("hidden_channels", "num_levels", "contact_k", "pushforward"):
-        assert hp[key] == quick["model"][key]  # the rest is the quickstart's
+        assert hp[key] == model_args(quick)[key]  # the rest is the quickstart's
     assert dm.hparams.num_train == quick["data"]["num_train"]
 
 

@@ -369,14 +369,16 @@ def test_one_line_errors():
         DirectSurrogate(base="median")
     with pytest.raises(ValueError, match="time_frequencies must be >= 1"):
         TimeEncoding(0)
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import DirectLightningModule, NextStepLightningModule
 
     with pytest.raises(
-        ValueError, match=r"model.mode direct: model.diffusion_steps=5 belong to the next-step"
+        TypeError, match=r"^DirectLightningModule: diffusion_steps is NextStepLightningModule's"
     ):
-        AMPNLightningModule(mode="direct", diffusion_steps=5)
-    with pytest.raises(ValueError, match="model.mode must be one of"):
-        AMPNLightningModule(mode="oneshot")
+        DirectLightningModule(diffusion_steps=5)
+    with pytest.raises(TypeError, match=r"^NextStepLightningModule: base is DirectLightningModule's"):
+        NextStepLightningModule(base="prior")
+    with pytest.raises(TypeError, match=r"^DirectLightningModule: no argument hiden_channels"):
+        DirectLightningModule(hiden_channels=5)
 
 
 def test_the_time_encoding_is_a_hand_computed_case():
@@ -392,15 +394,21 @@ def test_direct_arguments_of_the_module_match_the_direct_surrogate():
     import inspect
 
     from torch_ampn.nn import RobinAMPN
-    from torch_ampn.training import AMPNLightningModule
-    from torch_ampn.training.module import DIRECT_ARGUMENTS
+    from torch_ampn.training import DirectLightningModule
+    from torch_ampn.training.checkpoint import module_defaults
+    from torch_ampn.training.direct_module import DIRECT_ARGUMENTS
 
-    module = inspect.signature(AMPNLightningModule).parameters
+    module = module_defaults(DirectLightningModule)
     owners = {**inspect.signature(RobinAMPN).parameters, **inspect.signature(DirectSurrogate).parameters}
     for name in DIRECT_ARGUMENTS:
         assert name in module and name in owners, name
         if name not in ("contact_radius",):  # the module's default is the paper's, as the surrogate's
-            assert module[name].default == owners[name].default, name
+            assert module[name] == owners[name].default, name
+
+
+def without_next_step(model: dict) -> dict:
+    """The tiny fit's model settings without the next-step module's own (``fast_rollout``)."""
+    return {k: v for k, v in model.items() if k != "fast_rollout"}
 
 
 @pytest.mark.xdist_group("tiny_fit")
@@ -414,11 +422,12 @@ def test_cli_fit_with_weight_averaging_test_predict_and_export_of_a_direct_model
 
     from torch_ampn.cli.export import main as export
     from torch_ampn.cli.train import main
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import DirectLightningModule
 
     config_path, out = fit_config(tmp_path / "fit", tiny_data)
     config = yaml.safe_load(config_path.read_text())
-    config["model"].update(mode="direct", loss_steps=3, fast_rollout=True)
+    config["model"] = {"class_path": "torch_ampn.training.DirectLightningModule",
+                       "init_args": {**without_next_step(config["model"]), "loss_steps": 3}}  # fmt: skip
     config["trainer"]["max_steps"] = 4
     config["trainer"]["val_check_interval"] = 2
     config["trainer"]["callbacks"].append(
@@ -427,7 +436,7 @@ def test_cli_fit_with_weight_averaging_test_predict_and_export_of_a_direct_model
     config_path.write_text(yaml.safe_dump(config))
     main(["fit", "--config", str(config_path)])
     ckpt = out / "ckpt" / "last.ckpt"
-    module = AMPNLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    module = DirectLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
     surrogate = module.surrogate
     assert isinstance(surrogate, DirectSurrogate) and surrogate.statistics_frozen
     train = TrajectoryDataset(tiny_data, "train")
@@ -502,17 +511,19 @@ def test_cli_fit_test_and_design_of_a_direct_model_on_a_prior(tiny_data, tmp_pat
     from torch_ampn.baselines.prior import fitted_prior
     from torch_ampn.cli.design import main as design
     from torch_ampn.cli.train import main
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import DirectLightningModule
 
     config_path, out = fit_config(tmp_path / "fit", tiny_data)
     config = yaml.safe_load(config_path.read_text())
-    config["model"].update(mode="direct", loss_steps=3, base="prior")
+    config["model"] = {"class_path": "torch_ampn.training.DirectLightningModule",
+                       "init_args": {**without_next_step(config["model"]), "loss_steps": 3,
+                                     "base": "prior"}}  # fmt: skip
     config["data"].update(prior="mean_trajectory", prior_folds=2)
     config["trainer"].update(max_steps=2, val_check_interval=2)
     config_path.write_text(yaml.safe_dump(config))
     main(["fit", "--config", str(config_path)])
     ckpt = out / "ckpt" / "last.ckpt"
-    surrogate = AMPNLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval().surrogate
+    surrogate = DirectLightningModule.load_from_checkpoint(ckpt, map_location="cpu").eval().surrogate
     assert isinstance(surrogate, DirectSurrogate) and surrogate.base == "prior"
 
     common = ["--data.data_dir", str(tiny_data), "--data.generate", "false", "--data.min_coarse_nodes", "4"]

@@ -13,7 +13,7 @@ import yaml
 pytest.importorskip("lightning")
 
 from torch_ampn.rollout import rollout_rmse  # noqa: E402
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
+from torch_ampn.training import AMPNDataModule, NextStepLightningModule  # noqa: E402
 
 MODEL = dict(
     hidden_channels=8, mlp_channels=8, num_levels=2, pre_layers=1, down_layers=1, solve_layers=1,
@@ -95,11 +95,11 @@ def ddp_run(tmp_path_factory, tiny_data):
 @pytest.mark.slow
 def test_ddp_fit_uses_the_single_process_statistics_and_validates_every_trajectory_once(ddp_run):
     root, out, logged = ddp_run
-    module = AMPNLightningModule.load_from_checkpoint(out / "ckpt" / "last.ckpt", map_location="cpu")
+    module = NextStepLightningModule.load_from_checkpoint(out / "ckpt" / "last.ckpt", map_location="cpu")
     contact = dict(contact_radius=12.0, contact_k=1)
     dm = AMPNDataModule(str(root / "data"), generate=False, min_coarse_nodes=4, max_levels=2, **contact)
     dm.setup("fit")
-    single = AMPNLightningModule(**MODEL)
+    single = NextStepLightningModule(**MODEL)
     single.fit_statistics(dm.statistics_samples(8))
     for (
         name,

@@ -21,7 +21,7 @@ from torch_ampn.data.abaqus_io import read_abaqus  # noqa: E402
 from torch_ampn.data.d3plot_io import read_d3plot, write_d3plot  # noqa: E402
 from torch_ampn.data.template import template_settings  # noqa: E402
 from torch_ampn.testing import small_trajectory  # noqa: E402
-from torch_ampn.training import AMPNDataModule, AMPNLightningModule  # noqa: E402
+from torch_ampn.training import AMPNDataModule, NextStepLightningModule  # noqa: E402
 from torch_ampn.training.module import _check_writable  # noqa: E402
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "errors.md"
@@ -97,7 +97,7 @@ def _cases(tmp: Path) -> list[tuple[str, object]]:
     (tmp / "file").write_text("")
     data = tmp / "mismatch"
     small_trajectory().save(data / "train" / "traj_000000.pt")  # 3 components, 1 gripper
-    model = AMPNLightningModule(hidden_channels=8, mlp_channels=8, num_levels=2).surrogate  # 6 and 2
+    model = NextStepLightningModule(hidden_channels=8, mlp_channels=8, num_levels=2).surrogate  # 6 and 2
     grippers = '"gripper_positions": [0.5, 0.5]'
     run = write_d3plot(small_trajectory(), tmp / "run")  # a d3plot with its part map
     spec = yaml.safe_load((tmp / "run" / "parts.yaml").read_text())

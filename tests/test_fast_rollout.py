@@ -367,7 +367,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
     long_run, hierarchy, tmp_path, monkeypatch
 ):
     from torch_ampn.rollout import rollout_settings
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import NextStepLightningModule
     from torch_ampn.training.items import RolloutItem
 
     traj = long_run[0]
@@ -384,7 +384,7 @@ def test_rollout_settings_and_batched_predict_equal_single_rollouts(
                 solve_layers=1, post_layers=1, up_layers=1, contact_radius=12.0, contact_k=1,
                 output_dir=str(tmp_path), num_components=s.num_components, num_grippers=s.num_grippers,
                 export_xdmf=False)  # fmt: skip
-    module = AMPNLightningModule(**args)
+    module = NextStepLightningModule(**args)
     module.surrogate.load_state_dict(s.state_dict())
     module.surrogate.freeze_statistics()
     module.eval()

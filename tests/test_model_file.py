@@ -33,9 +33,9 @@ def _rollout(surrogate):
 
 
 def test_a_model_file_rolls_out_as_its_checkpoint_does(model_file):
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import NextStepLightningModule
 
-    module = AMPNLightningModule.load_from_checkpoint(TINY_CKPT, map_location="cpu").eval()
+    module = NextStepLightningModule.load_from_checkpoint(TINY_CKPT, map_location="cpu").eval()
     loaded = AMPNSurrogate.load(model_file)
     assert not loaded.training and loaded.statistics_frozen
     assert loaded.meta["training_meshes"] == module._training_meshes

@@ -25,8 +25,10 @@ README = ROOT / "README.md"
 LIGHTNING_FAST = (
     "--data.data_dir data/default --data.num_train 2 --data.num_val 1 --data.num_test 1 "
     "--data.generate false --data.min_coarse_nodes 4 --trainer.max_steps 4 --trainer.val_check_interval 2 "
-    "--trainer.enable_progress_bar false --model.compile_network false --model.fast_rollout false"
+    "--trainer.enable_progress_bar false"
 )
+#: Appended too where the command's model is the next-step one (no direct.yaml): nothing compiled.
+NEXT_STEP_FAST = "--model.compile_network false --model.fast_rollout false"
 FAST = {
     "fit": LIGHTNING_FAST,
     "test": LIGHTNING_FAST,
@@ -74,7 +76,10 @@ def _main_job_fit() -> list[str]:
 def _bash_prelude() -> str:
     """A ``torch-ampn`` function that appends the fast mode's arguments to the real command."""
     cases = "\n".join(f'    {sub}) command torch-ampn "$@" {args} ;;' for sub, args in FAST.items())
-    return f'torch-ampn() {{\n  case "$1" in\n{cases}\n    *) command torch-ampn "$@" ;;\n  esac\n}}\n'
+    lightning = '[[ "$1" =~ ^(fit|test|predict)$ && "$*" != *direct.yaml* ]]'
+    next_step = f'  if {lightning}; then set -- "$@" {NEXT_STEP_FAST}; fi\n'
+    default = '    *) command torch-ampn "$@" ;;'
+    return f'torch-ampn() {{\n{next_step}  case "$1" in\n{cases}\n{default}\n  esac\n}}\n'
 
 
 @pytest.mark.slow

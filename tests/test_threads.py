@@ -255,10 +255,10 @@ def test_the_simulator_and_the_rollouts_follow_at_every_step(monkeypatch, busy_g
 def test_the_fit_follows_at_every_batch(busy_governor):
     from types import SimpleNamespace
 
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import NextStepLightningModule
     from torch_ampn.training.free_cpu import FollowFreeCpu
 
-    module = AMPNLightningModule(hidden_channels=8, mlp_channels=8, num_levels=1)
+    module = NextStepLightningModule(hidden_channels=8, mlp_channels=8, num_levels=1)
     (callback,) = [c for c in module.configure_callbacks() if isinstance(c, FollowFreeCpu)]
     pl_module = SimpleNamespace(device=torch.device("cpu"))
     callback.on_train_start(None, pl_module)

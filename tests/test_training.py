@@ -28,7 +28,7 @@ from torch_ampn.sim.config import MATERIAL_V1, PHYSICS_V2  # noqa: E402
 from torch_ampn.testing import SMALL_SIMULATOR  # noqa: E402
 from torch_ampn.training import (  # noqa: E402
     AMPNDataModule,
-    AMPNLightningModule,
+    NextStepLightningModule,
     WarmupExponentialDecay,
     warmup_exponential_decay,
 )
@@ -61,7 +61,7 @@ def _quiet_trainer(max_steps, callbacks=None):
 
 
 def _fitted_module(data_dir, **kwargs):
-    module = AMPNLightningModule(**SMALL_MODEL, **kwargs)
+    module = NextStepLightningModule(**SMALL_MODEL, **kwargs)
     dm = _datamodule(data_dir)
     module.fit_statistics(dm.statistics_samples(8))
     return module, dm
@@ -125,7 +125,9 @@ def test_schedule_under_a_time_budget_decays_with_whichever_runs_out_first():
 def test_time_limited_fit_ends_at_the_final_rate_with_a_validation(data_dir, tmp_path):
     """trainer.max_time stops a fit long before max_steps; the rate has decayed to final_lr by then."""
     torch.manual_seed(0)
-    module = AMPNLightningModule(**SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=2, statistics_samples=8)
+    module = NextStepLightningModule(
+        **SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=2, statistics_samples=8
+    )
     dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4)
     lrs, vals = [], []
 
@@ -165,7 +167,7 @@ def test_time_limited_fit_ends_at_the_final_rate_with_a_validation(data_dir, tmp
 
 
 def test_module_scheduler_steps_per_optimiser_step(data_dir, monkeypatch):
-    module = AMPNLightningModule(**SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=4)
+    module = NextStepLightningModule(**SMALL_MODEL, lr=1e-3, final_lr=1e-4, warmup_steps=4)
     monkeypatch.setattr(module, "_total_steps", lambda: 24)
     conf = module.configure_optimizers()
     opt, sched = conf["optimizer"], conf["lr_scheduler"]["scheduler"]
@@ -290,7 +292,7 @@ def test_pushforward_starts_from_the_models_own_prediction(data_dir):
     torch.testing.assert_close(pushed.pos[in_later] - pushed.prev_disp[in_later], traj.pos[t - 2])
     torch.testing.assert_close(pushed.pos[in_later] + pushed.target[in_later], traj.pos[t])
     with pytest.raises(ValueError, match="pushforward"):
-        AMPNLightningModule(**SMALL_MODEL, pushforward=1.5)
+        NextStepLightningModule(**SMALL_MODEL, pushforward=1.5)
 
 
 def test_robin_mode_trains_and_samples(data_dir):
@@ -314,7 +316,7 @@ def test_checkpoint_round_trip_gives_identical_rollouts(data_dir, tmp_path):
     trainer.fit(module, datamodule=dm)
     path = tmp_path / "model.ckpt"
     trainer.save_checkpoint(path)
-    restored = AMPNLightningModule.load_from_checkpoint(path)
+    restored = NextStepLightningModule.load_from_checkpoint(path)
     assert restored.surrogate.statistics_frozen
     for name, value in module.surrogate.state_dict().items():
         assert torch.equal(value, restored.surrogate.state_dict()[name]), name
@@ -329,9 +331,9 @@ def test_checkpoint_round_trip_gives_identical_rollouts(data_dir, tmp_path):
 def test_datamodule_checks_model_and_predict_settings(data_dir, tmp_path):
     dm = _datamodule(data_dir)
     with pytest.raises(ValueError, match="num_components=5"):
-        dm.check_model(AMPNLightningModule(**{**SMALL_MODEL, "num_components": 5}).surrogate)
+        dm.check_model(NextStepLightningModule(**{**SMALL_MODEL, "num_components": 5}).surrogate)
     with pytest.raises(ValueError, match="num_levels=4"):
-        dm.check_model(AMPNLightningModule(**{**SMALL_MODEL, "num_levels": 4}).surrogate)
+        dm.check_model(NextStepLightningModule(**{**SMALL_MODEL, "num_levels": 4}).surrogate)
     with pytest.raises(ValueError, match="predict needs process settings"):
         dm.predict_settings()
     bad = tmp_path / "settings.json"
@@ -595,7 +597,7 @@ def test_huber_loss_of_the_module_by_hand(data_dir):
     assert (a > 0.05).any() and (a <= 0.05).any()
     torch.testing.assert_close(loss.double(), want, rtol=1e-5, atol=1e-8)
     with pytest.raises(ValueError, match="huber_delta"):
-        AMPNLightningModule(**SMALL_MODEL, huber_delta=-1.0)
+        NextStepLightningModule(**SMALL_MODEL, huber_delta=-1.0)
 
 
 def test_coarse_loss_of_the_module_by_hand(data_dir):
@@ -635,7 +637,7 @@ class _RecordParameters(L.Callback):
 
 def _fit_three_steps(data_dir, callbacks):
     L.seed_everything(0)
-    module = AMPNLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2)
+    module = NextStepLightningModule(**SMALL_MODEL, statistics_samples=8, warmup_steps=1, lr=1e-2)
     dm = AMPNDataModule(str(data_dir), generate=False, max_levels=2, min_coarse_nodes=4, batch_size=2)
     trainer = _quiet_trainer(max_steps=3, callbacks=callbacks)
     trainer.fit(module, datamodule=dm)
@@ -667,7 +669,7 @@ def _fit_three_steps_compiled(data_dir, **kwargs):
     layers are checked against eager in tests/test_nn_compile.py, at a fraction of this compile time."""
     L.seed_everything(0)
     model = {**SMALL_MODEL, "num_levels": 1, "pre_layers": 0, "post_layers": 0}
-    module = AMPNLightningModule(**model, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
+    module = NextStepLightningModule(**model, statistics_samples=8, warmup_steps=1, lr=1e-2, **kwargs)
     dm = AMPNDataModule(str(data_dir), generate=False, max_levels=1, min_coarse_nodes=4, batch_size=2)
     _quiet_trainer(max_steps=3).fit(module, datamodule=dm)
     return module
@@ -717,16 +719,17 @@ def test_surrogate_arguments_of_the_module_match_the_surrogate_and_the_network()
 
     from torch_ampn.forming import AMPNSurrogate
     from torch_ampn.nn import RobinAMPN
-    from torch_ampn.training.module import SURROGATE_ARGUMENTS
+    from torch_ampn.training.checkpoint import module_defaults
+    from torch_ampn.training.next_step_module import SURROGATE_ARGUMENTS
 
-    module = inspect.signature(AMPNLightningModule).parameters
+    module = module_defaults(NextStepLightningModule)
     # the forming network is RobinAMPN (the paper's settings), not the generic AMPN's defaults
     owners = {**inspect.signature(RobinAMPN).parameters, **inspect.signature(AMPNSurrogate).parameters}
     for name in SURROGATE_ARGUMENTS:
         assert name in module and name in owners, name
-        assert module[name].default == owners[name].default, name
+        assert module[name] == owners[name].default, name
     # every surrogate argument of the module reaches the network
-    model = AMPNLightningModule(**{**SMALL_MODEL, "mlp_channels": 24, "aggr": "mean"}).surrogate.model
+    model = NextStepLightningModule(**{**SMALL_MODEL, "mlp_channels": 24, "aggr": "mean"}).surrogate.model
     assert (model.hidden_channels, model.mlp_channels, model.aggr, model.num_levels) == (16, 24, "mean", 2)
     assert [len(s) for s in (model.pre, model.down, model.solve, model.post, model.up)] == [1] * 5
 
@@ -742,7 +745,7 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path,
     ref = torch.load(data / "legacy_0.1.0.dev0_reference.pt", weights_only=True)
     legacy = data / "legacy_0.1.0.dev0.ckpt"
     assert "mlp_channels" not in torch.load(legacy, weights_only=True)["hyper_parameters"]
-    module = AMPNLightningModule.load_from_checkpoint(legacy, weights_only=True)
+    module = NextStepLightningModule.load_from_checkpoint(legacy, weights_only=True)
     assert module.hparams.mlp_channels == module.hparams.hidden_channels == 8
     assert module.surrogate.model.pre[0].mlp_contact.hidden_channels == 8
     # the reference's run is seed 3 of the small setting with the material of its day (data version 1)
@@ -758,10 +761,85 @@ def test_checkpoint_of_version_0_1_0_dev0_loads_and_predicts_as_it_did(tmp_path,
     path = tmp_path / "again.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "pytorch-lightning_version": L.__version__}, path)  # fmt: skip
-    again = AMPNLightningModule.load_from_checkpoint(path, weights_only=True)
+    again = NextStepLightningModule.load_from_checkpoint(path, weights_only=True)
     assert again.hparams.mlp_channels == 8
     for name, value in module.state_dict().items():
         assert torch.equal(value, again.state_dict()[name]), name
+
+
+def _assert_same_state(state, reference):
+    """Equal state dicts: tensors bit for bit, extra states (dicts) by value."""
+    assert state.keys() == reference.keys()
+    for name, value in reference.items():
+        same = torch.equal(state[name], value) if isinstance(value, torch.Tensor) else state[name] == value
+        assert same, name
+
+
+def _pre_split_checkpoint(module, path, mode):
+    """``module`` saved as the one module of both models saved it before 2026-12-07: every argument
+    of both models (the other's unused) and ``mode``, no ``torch_ampn_model`` field."""
+    from torch_ampn.training import DirectLightningModule
+    from torch_ampn.training.checkpoint import module_defaults
+
+    both = {**module_defaults(NextStepLightningModule), **module_defaults(DirectLightningModule)}
+    hparams = {**both, **dict(module.hparams), "mode": mode, "rollout_seed": 7}  # a next-step knob, unused
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": L.__version__}, path)  # fmt: skip
+    return path
+
+
+def test_a_direct_checkpoint_from_before_the_split_loads_as_a_direct_module(tmp_path, data_dir):
+    from torch_ampn.training import DirectLightningModule, load_module
+
+    torch.manual_seed(0)
+    module = DirectLightningModule(
+        **{k: v for k, v in SMALL_MODEL.items() if k != "fast_rollout"}, base="initial"
+    )
+    dm = _datamodule(data_dir, mode="direct")
+    module.fit_statistics(dm.statistics_samples(2))
+    path = _pre_split_checkpoint(module, tmp_path / "old_direct.ckpt", "direct")
+    for loaded in (load_module(path), DirectLightningModule.load_from_checkpoint(path)):
+        assert type(loaded) is DirectLightningModule and loaded.hparams.base == "initial"
+        assert "mode" not in loaded.hparams and "rollout_seed" not in loaded.hparams
+        _assert_same_state(loaded.state_dict(), module.state_dict())
+    with pytest.raises(
+        SystemExit, match=r"model.pushforward=0.5 \(not an argument of the checkpoint's model\)"
+    ):
+        main(["test", "--ckpt_path", str(path), "--model.pushforward", "0.5"])
+    with pytest.raises(
+        ValueError, match=r"old_direct.ckpt: holds a direct model, not a NextStepLightningModule's"
+    ):
+        NextStepLightningModule.load_from_checkpoint(path)
+
+
+def test_the_committed_next_step_checkpoint_from_before_the_split_loads_both_ways():
+    from torch_ampn.training import DirectLightningModule, load_module
+
+    saved = torch.load(TINY_CKPT, weights_only=True)
+    assert (
+        saved["hyper_parameters"].get("mode", "next_step") == "next_step" and "torch_ampn_model" not in saved
+    )
+    a, b = load_module(TINY_CKPT), NextStepLightningModule.load_from_checkpoint(TINY_CKPT)
+    assert type(a) is type(b) is NextStepLightningModule
+    assert a.hparams.hidden_channels == saved["hyper_parameters"]["hidden_channels"]
+    _assert_same_state(a.state_dict(), saved["state_dict"])
+    _assert_same_state(b.state_dict(), saved["state_dict"])
+    with pytest.raises(ValueError, match="holds a next_step model, not a DirectLightningModule's"):
+        DirectLightningModule.load_from_checkpoint(TINY_CKPT)
+
+
+def test_a_new_checkpoint_names_its_model_and_the_cli_refuses_the_other_models_config():
+    configs = Path(__file__).resolve().parents[1] / "examples" / "configs"
+    module = NextStepLightningModule(**SMALL_MODEL)
+    checkpoint = {}
+    module.on_save_checkpoint(checkpoint)
+    assert checkpoint["torch_ampn_model"] == "next_step"
+    with pytest.raises(
+        SystemExit, match=r"tiny.ckpt: holds a NextStepLightningModule, not the DirectLightningModule"
+    ):
+        main(["test", "--config", str(configs / "direct.yaml"), "--ckpt_path", str(TINY_CKPT)])
+    with pytest.raises(SystemExit, match=r"holds a NextStepLightningModule, not the DirectLightningModule"):
+        main(["test", "--ckpt_path", str(TINY_CKPT), "--model", "DirectLightningModule"])
 
 
 # ---- bad input: one line naming the file and the field ------------------------------------------
@@ -820,7 +898,7 @@ def test_bad_checkpoints_and_input_errors_end_in_one_line(data_dir, tmp_path):
 def test_an_output_folder_that_cannot_be_written_stops_fit_before_training(data_dir, tmp_path):
     blocked = tmp_path / "file"
     blocked.write_text("a file where the folder should be")
-    module = AMPNLightningModule(**SMALL_MODEL, output_dir=str(blocked / "reports"))
+    module = NextStepLightningModule(**SMALL_MODEL, output_dir=str(blocked / "reports"))
     trainer = _quiet_trainer(max_steps=2)
     message = f"{blocked / 'reports'}: cannot write there \\(model.output_dir\\)"
     with pytest.raises(PermissionError, match=message):
@@ -888,7 +966,7 @@ def test_the_data_module_interface_is_declared_and_a_fit_without_it_is_refused(d
             return DataLoader(windows, batch_size=None)
 
     assert not isinstance(Plain(), ForecastDataSource)
-    module = AMPNLightningModule(**SMALL_MODEL)
+    module = NextStepLightningModule(**SMALL_MODEL)
     with pytest.raises(RuntimeError, match="ForecastDataSource's methods"):
         _quiet_trainer(2).fit(module, datamodule=Plain())
     assert module.trainer.global_step == 0

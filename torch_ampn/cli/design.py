@@ -63,11 +63,11 @@ def build_predictor(args: argparse.Namespace, cfg: Any) -> tuple[Any, Any, str]:
             )
         predict = baseline_predictor(fitted_prior(args.baseline, trajectories))
         return predict, predict, f"baseline {args.baseline}"
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import load_module
 
     if not args.checkpoint.is_file():
         raise FileNotFoundError(f"{args.checkpoint}: no such checkpoint")
-    module = AMPNLightningModule.load_from_checkpoint(args.checkpoint, map_location="cpu").eval()
+    module = load_module(args.checkpoint).eval()
     saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False).get(
         "datamodule_hyper_parameters", {}
     )

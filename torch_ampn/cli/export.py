@@ -21,9 +21,9 @@ def main(argv: list[str] | None = None) -> Path:
     from torch_ampn.cli.train import _check_checkpoint
 
     _check_checkpoint("export", args.checkpoint)
-    from torch_ampn.training import AMPNLightningModule
+    from torch_ampn.training import load_module
 
-    module = AMPNLightningModule.load_from_checkpoint(args.checkpoint, map_location="cpu")
+    module = load_module(args.checkpoint)
     surrogate = module.surrogate
     if not surrogate.statistics_frozen:
         raise ValueError(

@@ -1,12 +1,18 @@
 """``torch-ampn``: the Lightning CLI (``fit``, ``validate``, ``test``, ``predict``).
 
+The model is a subclass of :class:`~torch_ampn.training.SurrogateLightningModule`, named by
+``model.class_path`` (default :class:`~torch_ampn.training.NextStepLightningModule`; or
+``--model DirectLightningModule``), its arguments under ``model.init_args`` (a later config file
+or ``--model.NAME`` may give them flat).
+
     torch-ampn fit --config examples/configs/quickstart.yaml
     torch-ampn test --config examples/configs/quickstart.yaml \
         --ckpt_path outputs/quickstart_nextstep/checkpoints/best.ckpt
     torch-ampn predict --ckpt_path CKPT --data.predict_file examples/predict_settings.yaml
 
 The model's contact settings and level count are linked into the data module (the
-training windows are built with the same contact edges the model rolls out with), and
+training windows are built with the same contact edges the model rolls out with), so is
+its kind (``data.mode``), and
 the Trainer clips gradients at norm 1 by default (the paper's recipe).
 
 With ``--ckpt_path`` the model's settings come from the checkpoint. Settings given on the
@@ -19,7 +25,6 @@ a message, never ignored.
 from __future__ import annotations
 
 import copy
-import inspect
 import os
 import sys
 import warnings
@@ -29,11 +34,14 @@ from typing import Any
 
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
+from torch_ampn.training.checkpoint import MODULES, module_arguments, module_class, module_defaults
 from torch_ampn.training.datamodule import AMPNDataModule
-from torch_ampn.training.module import AMPNLightningModule
+from torch_ampn.training.module import SurrogateLightningModule
+from torch_ampn.training.next_step_module import NextStepLightningModule
 from torch_ampn.training.progress import FitProgress
+from torch_ampn.utils.io import load_torch_file
 
-#: Options of :class:`AMPNLightningModule` that do not change the network: given with
+#: Options of the Lightning modules that do not change the network: given with
 #: ``--ckpt_path``, they win over the checkpoint's values.
 RUNTIME_OPTIONS = (
     "output_dir",
@@ -46,12 +54,21 @@ RUNTIME_OPTIONS = (
 )
 
 
-#: The module's defaults (those of the parser too): a given value equal to one was not given.
-MODULE_DEFAULTS: dict[str, Any] = {
-    name: p.default
-    for name, p in inspect.signature(AMPNLightningModule.__init__).parameters.items()
-    if p.default is not inspect.Parameter.empty
-}
+def class_path(module_class: type) -> str:
+    """``"package.module.Class"`` of a class, as ``model.class_path`` names it."""
+    return f"{module_class.__module__}.{module_class.__name__}"
+
+
+#: ``model.class_path`` without a config: the seed paper's next-step model.
+DEFAULT_CLASS_PATH = class_path(NextStepLightningModule)
+
+
+def model_of_class_path(path: str) -> str:
+    """``data.mode`` of a ``model.class_path``: the model name of the module class it names."""
+    for name, klass in MODULES.items():
+        if path in (class_path(klass), klass.__name__, f"torch_ampn.training.{klass.__name__}"):
+            return name
+    return NextStepLightningModule.MODEL
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -77,7 +94,7 @@ def _check_checkpoint(subcommand: str, path: str) -> None:
     if not all(k in hparams for k in ("num_components", "hidden_channels", "num_levels")):
         sys.exit(
             f"torch-ampn {subcommand}: {path}: not a torch-ampn checkpoint "
-            "(field 'hyper_parameters' lacks the AMPNLightningModule settings)"
+            "(field 'hyper_parameters' lacks the Lightning module's settings)"
         )
 
 
@@ -97,12 +114,16 @@ class AMPNCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         """Link model and data arguments."""
-        parser.link_arguments("model.contact_radius", "data.contact_radius")
-        parser.link_arguments("model.contact_k", "data.contact_k")
-        parser.link_arguments("model.contact_mode", "data.contact_mode")
-        parser.link_arguments("model.contact_positions", "data.contact_positions")
-        parser.link_arguments("model.num_levels", "data.max_levels")
-        parser.link_arguments("model.mode", "data.mode")
+        for model_key, data_key in [
+            ("contact_radius", "contact_radius"),
+            ("contact_k", "contact_k"),
+            ("contact_mode", "contact_mode"),
+            ("contact_positions", "contact_positions"),  # the next-step model's only
+            ("num_levels", "max_levels"),
+        ]:
+            parser.link_arguments(f"model.init_args.{model_key}", f"data.{data_key}")
+        parser.link_arguments("model.class_path", "data.mode", compute_fn=model_of_class_path)
+        parser.set_defaults({"model": {"class_path": DEFAULT_CLASS_PATH}})
         parser.add_lightning_class_args(FitProgress, "progress")
 
     def after_fit(self) -> None:
@@ -120,8 +141,9 @@ class AMPNCLI(LightningCLI):
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
         """Parse; with ``--ckpt_path``, check the file and keep the model settings given before it.
 
-        Lightning then replaces the model's settings with the checkpoint's; :meth:`before_instantiate_classes`
-        puts the given runtime options back and refuses given settings of the trained network.
+        :meth:`_parse_ckpt_path` then replaces the model's settings with the checkpoint's;
+        :meth:`before_instantiate_classes` puts the given runtime options back and refuses given
+        settings of the trained network.
         """
         super().parse_arguments(parser, args)
         self._given_model = None
@@ -130,23 +152,53 @@ class AMPNCLI(LightningCLI):
             _check_checkpoint(subcommand, self.config[subcommand].ckpt_path)
             self._given_model = copy.deepcopy(self.config[subcommand].model)
 
+    def _parse_ckpt_path(self) -> None:
+        """The model of ``--ckpt_path``: its class and settings (also from before the split)."""
+        subcommand = self.config.get("subcommand")
+        path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if not path or not Path(path).is_file():
+            return
+        checkpoint = load_torch_file(path, "checkpoint")
+        try:
+            klass = module_class(checkpoint, path)
+        except ValueError as err:
+            sys.exit(f"torch-ampn {subcommand}: {err}")
+        init_args = module_arguments(checkpoint.get("hyper_parameters") or {}, klass)
+        model = {"class_path": class_path(klass), "init_args": init_args}
+        self.config = self.parser.parse_object({subcommand: {"model": model}}, self.config)
+
     def before_instantiate_classes(self) -> None:
         """Given runtime options win over the checkpoint's; other given settings that differ are refused."""
-        if getattr(self, "_given_model", None) is None:
+        given = getattr(self, "_given_model", None)
+        if given is None:
             return
         subcommand = self.config.subcommand
         model = self.config[subcommand].model
+        path = self.config[subcommand].ckpt_path
+        given_args = vars(given.get("init_args") or {})
+        given_class = given.get("class_path") or DEFAULT_CLASS_PATH
+        given_model, saved_model = model_of_class_path(given_class), model_of_class_path(model.class_path)
+        defaults = module_defaults(MODULES[given_model])
+        if given_model not in (saved_model, NextStepLightningModule.MODEL):  # the default model: no config
+            sys.exit(
+                f"torch-ampn {subcommand}: {path}: holds a {model.class_path.rsplit('.', 1)[-1]}, "
+                f"not the {given_class.rsplit('.', 1)[-1]} of the given config; give the config the "
+                "checkpoint was trained with, or none"
+            )
+        accepted = module_defaults(MODULES[saved_model])
         conflicts = []
-        for key, value in vars(self._given_model).items():
-            if _same(value, MODULE_DEFAULTS.get(key)) or _same(value, model.get(key)):
+        for key, value in given_args.items():
+            if _same(value, defaults.get(key)) or _same(value, model.init_args.get(key)):
                 continue
-            if key in RUNTIME_OPTIONS:
-                model[key] = value
+            if key not in accepted:
+                conflicts.append(f"model.{key}={value!r} (not an argument of the checkpoint's model)")
+            elif key in RUNTIME_OPTIONS:
+                model.init_args[key] = value
             else:
-                conflicts.append(f"model.{key}={value!r} (the checkpoint has {model.get(key)!r})")
+                conflicts.append(f"model.{key}={value!r} (the checkpoint has {model.init_args.get(key)!r})")
         if conflicts:
             sys.exit(
-                f"torch-ampn {subcommand}: {self.config[subcommand].ckpt_path}: "
+                f"torch-ampn {subcommand}: {path}: "
                 f"{', '.join(conflicts)}: these settings belong to the trained model and cannot be "
                 "changed with --ckpt_path; drop them (or train a new model)"
             )
@@ -154,13 +206,14 @@ class AMPNCLI(LightningCLI):
 
 def main(args: Sequence[str] | None = None, run: bool = True) -> AMPNCLI:
     """Run (or with ``run=False`` only build) the ``torch-ampn`` CLI; returns it."""
-    # Rollout items are moved by the rollout itself (see AMPNLightningModule.transfer_batch_to_device).
+    # Rollout items are moved by the rollout itself (see SurrogateLightningModule.transfer_batch_to_device).
     warnings.filterwarnings("ignore", message=".*overridden `transfer_batch_to_device`.*")
     # configure_model only fits the normalisation statistics (no sharded layers; see the module's hook)
     warnings.filterwarnings("ignore", message=".*overrides the configure_model callback.*")
     return AMPNCLI(
-        AMPNLightningModule,
+        SurrogateLightningModule,
         AMPNDataModule,
+        subclass_mode_model=True,
         trainer_defaults={"gradient_clip_val": 1.0},
         save_config_kwargs={"overwrite": True},
         args=list(args) if args is not None else None,

@@ -193,7 +193,7 @@ def set_window(
     r"""Write the state fields of a window :math:`(t-1, t)` into ``data`` (in place) and return it.
 
     Used by :func:`step_sample` and by the pushforward of
-    :class:`~torch_ampn.training.AMPNLightningModule`, which builds the window before.
+    :class:`~torch_ampn.training.NextStepLightningModule`, which builds the window before.
 
     Args:
         data: The window's hierarchy (a shallow copy, or a batch).
@@ -231,7 +231,7 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
     * ``prev_prev_disp`` ``[N, 3]``: the residual before, :math:`x^{t-2} - x^{t-3}` (zero for
       ``t < 3``), which with ``prev_disp`` and the ``prev_gripper_*`` fields makes the
       window ``(t-2, t-1)`` (the pushforward training of
-      :class:`~torch_ampn.training.AMPNLightningModule`);
+      :class:`~torch_ampn.training.NextStepLightningModule`);
     * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies;
     * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}`;
     * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level;

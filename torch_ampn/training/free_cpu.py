@@ -15,8 +15,9 @@ class FollowFreeCpu(Callback):
 
     On the CPU, torch's spinning threads are the fastest on a quiet machine and collapse when
     another process holds a core; this callback sets their number to the cores other processes
-    leave free, and restores torch's count when the fit ends. :class:`AMPNLightningModule`
-    adds it to every Trainer (``configure_callbacks``); ``AMPN_THREADS=off`` turns it off.
+    leave free, and restores torch's count when the fit ends.
+    :class:`~torch_ampn.training.SurrogateLightningModule` adds it to every Trainer
+    (``configure_callbacks``); ``AMPN_THREADS=off`` turns it off.
     """
 
     def __init__(self) -> None:

@@ -1,7 +1,13 @@
-"""AMPNLightningModule: next-step residual training, rollout validation, test reports and prediction."""
+"""The Lightning module both forming surrogates share: set-up, statistics, schedule, rollouts and reports.
+
+:class:`~torch_ampn.training.NextStepLightningModule` (the seed paper's next-step model) and
+:class:`~torch_ampn.training.DirectLightningModule` (one pass per trajectory) subclass it, each
+with the arguments of its own model.
+"""
 
 from __future__ import annotations
 
+import inspect
 import os
 import time
 from pathlib import Path
@@ -18,7 +24,6 @@ from torch_ampn.rollout import rollout_rmse, rollout_surrogate
 from torch_ampn.training.baseline_rollouts import BaselineRollouts
 from torch_ampn.training.compiled_loss import CompiledLoss
 from torch_ampn.training.free_cpu import FollowFreeCpu
-from torch_ampn.training.inputs import add_training_noise, pushforward_inputs
 from torch_ampn.training.items import RolloutItem, gather_objects
 from torch_ampn.training.protocol import forecast_source
 from torch_ampn.training.report import TestReport, write_prediction
@@ -37,7 +42,7 @@ def _check_writable(folder: Path, name: str) -> None:
         raise PermissionError(f"{folder}: cannot write there ({name}): {err.strerror or err}") from None
 
 
-#: The module's arguments of the network's size and shape, for both surrogates.
+#: The arguments of the network's size and shape, for both surrogates.
 NETWORK_ARGUMENTS = (
     "num_components",
     "num_grippers",
@@ -50,145 +55,52 @@ NETWORK_ARGUMENTS = (
     "post_layers",
     "up_layers",
     "aggr",
-)
-
-# The module's arguments that build its AMPNSurrogate (and, through it, the AMPN); the rest are
-# training, rollout and output options.
-SURROGATE_ARGUMENTS = (
-    *NETWORK_ARGUMENTS,
-    "diffusion_steps",
-    "contact_radius",
-    "contact_k",
-    "contact_mode",
-    "contact_positions",
-    "center_target",
-    "predict_change",
-    "huber_delta",
-    "coarse_loss_weight",
-    "component_encoding",
-    "prior_features",
-    "network_class",
-    "network_options",
-)
-
-#: The module's arguments that build a :class:`~torch_ampn.forming.direct.DirectSurrogate` (``mode: direct``).
-DIRECT_ARGUMENTS = (
-    *NETWORK_ARGUMENTS,
     "contact_radius",
     "contact_k",
     "contact_mode",
     "component_encoding",
-    "base",
-    "time_frequencies",
-    "decoder_layers",
-    "loss_steps",
-    "settings_input",
-    "position_frequencies",
-    "decoder_modes",
-    "mode_channels",
-    "mode_layers",
-    "space_time_modes",
-    "base_input",
-    "target_scale",
 )
 
-#: Next-step settings a direct model has no use for, with the values that mean "off".
-_NEXT_STEP_ONLY = {
-    "diffusion_steps": 1,
-    "prior_features": False,
-    "network_class": None,
-    "predict_change": False,
-    "huber_delta": None,
-    "coarse_loss_weight": 0.0,
-    "pushforward": 0.0,
-}
-MODES = ("next_step", "direct")
 
+def checkpoint_model(checkpoint: dict[str, Any]) -> str:
+    """The model a loaded checkpoint holds: ``"next_step"`` or ``"direct"`` (or what it names).
 
-def build_surrogate(hparams: Any) -> AMPNSurrogate | DirectSurrogate:
-    """The surrogate of the module's arguments: next-step (the paper) or direct (``mode: direct``).
-
-    Raises:
-        ValueError: For an unknown mode, or a next-step setting given to a direct model.
+    Read from ``checkpoint["torch_ampn_model"]``; in checkpoints written before that field
+    (2026-12), from the hyper-parameter ``mode``.
     """
-    mode = hparams.get("mode", "next_step")
-    if mode not in MODES:
-        raise ValueError(f"model.mode must be one of {MODES}, got {mode!r}")
-    if mode == "next_step":
-        return AMPNSurrogate(**{name: hparams[name] for name in SURROGATE_ARGUMENTS})
-    given = [f"model.{k}={hparams[k]!r}" for k, off in _NEXT_STEP_ONLY.items() if hparams.get(k, off) != off]
-    if given:
-        raise ValueError(f"model.mode direct: {', '.join(given)} belong to the next-step model; drop them")
-    return DirectSurrogate(**{name: hparams[name] for name in DIRECT_ARGUMENTS})
+    if checkpoint.get("torch_ampn_model"):
+        return str(checkpoint["torch_ampn_model"])
+    return str((checkpoint.get("hyper_parameters") or {}).get("mode", "next_step"))
 
 
-class AMPNLightningModule(L.LightningModule):
-    r"""Trains an :class:`~torch_ampn.forming.AMPNSurrogate` with the seed paper's recipe.
+class SurrogateLightningModule(L.LightningModule):
+    r"""What the forming surrogates' Lightning modules share (use a subclass).
 
-    * **fit**: MSE on the normalised next-step residual of ply nodes (ROBIN mode with
-      ``diffusion_steps > 1``: the v-prediction loss at a random diffusion step); Adam;
-      linear warm-up over ``warmup_steps`` then exponential decay ``lr -> final_lr`` over the
-      remaining steps, stepped per optimiser step (with ``trainer.max_time`` set, the decay
+    * **fit**: the surrogate's loss (the subclass's :meth:`training_inputs` prepare the batch);
+      Adam; linear warm-up over ``warmup_steps`` then exponential decay ``lr -> final_lr`` over
+      the remaining steps, stepped per optimiser step (with ``trainer.max_time`` set, the decay
       ends at ``final_lr`` when either the steps or the time run out, see
-      :class:`~torch_ampn.training.schedule.WarmupExponentialDecay`); training noise ``position_noise`` *
-      :math:`\sigma_x` on ply positions and ``residual_noise`` * :math:`\sigma_x` on the
-      previous residual (:math:`\sigma_x`: std of training node positions). Gradient clipping
-      at norm 1 is the Trainer's ``gradient_clip_val`` (the ``torch-ampn`` CLI sets it).
-      Normalisation statistics come from up to ``statistics_samples`` training windows
-      before the first step and are stored in the checkpoint.
-    * **validate**: full autoregressive rollout of each validation trajectory; logs
-      ``val/rollout_rmse`` (mm over ply nodes, averaged over steps).
-    * **test**: the same on the test trajectories, side by side with the trivial baselines
-      (:mod:`torch_ampn.baselines`); writes a CSV table, plots and XDMF rollouts to
-      ``output_dir`` (see :class:`~torch_ampn.training.report.TestReport`).
-    * **predict**: rollouts of new process settings without ground truth (XDMF + PNG).
+      :class:`~torch_ampn.training.schedule.WarmupExponentialDecay`). Gradient clipping at
+      norm 1 is the Trainer's ``gradient_clip_val`` (the ``torch-ampn`` CLI sets it).
+      Normalisation statistics come from up to ``statistics_samples`` training samples before
+      the first step and are stored in the checkpoint.
+    * **validate**: the prediction of each validation trajectory; logs ``val/rollout_rmse``
+      (mm over ply nodes, averaged over steps).
+    * **test**: the same on the test trajectories, side by side with the trivial and
+      setting-aware baselines (:mod:`torch_ampn.baselines`); writes a CSV table, plots and
+      XDMF rollouts to ``output_dir`` (see :class:`~torch_ampn.training.report.TestReport`).
+    * **predict**: predictions of new process settings without ground truth (XDMF + PNG).
 
-    The first arguments, :data:`SURROGATE_ARGUMENTS`, build the
-    :class:`~torch_ampn.forming.AMPNSurrogate` and its :class:`~torch_ampn.nn.RobinAMPN` (documented
-    there; the defaults are the paper's). They are flat arguments of the module so that configs
-    read ``model.num_levels``, the command line takes ``--model.diffusion_steps 5``, the CLI
+    The network's arguments are flat arguments of the module so that configs read
+    ``model.init_args.num_levels``, the command line takes ``--model.num_levels 3``, the CLI
     links the contact settings into the data module, and checkpoints hold plain values.
+    Checkpoints load with :meth:`load_from_checkpoint` (any subclass's, and those written
+    before the split into two modules: :func:`~torch_ampn.training.load_module`).
 
     Args:
         num_components: Components of the mesh (plies + tools; 6 for the default dataset); with
             ``component_encoding: stack``, the most of any part of a family.
-        component_encoding: ``"onehot"`` (the paper's component one-hot, one part) or
-            ``"stack"`` (plies below and above a ply node: the same on parts of any ply count;
-            :func:`~torch_ampn.forming.features.component_features`).
         num_grippers: Grippers (2 for the default dataset).
-        prior_features: Take a prior trajectory (the data module's ``prior``, e.g. POD + GP) as
-            input and learn its correction (:func:`~torch_ampn.forming.features.prior_features`);
-            rollouts then take the plain path.
-        network_class: Another network in place of the AMPN (``"package.module:Class"``, e.g. a
-            peer's model behind an adapter; see :class:`~torch_ampn.forming.AMPNSurrogate`); the AMPN's
-            layer arguments below are then unused, and rollouts take the plain path.
-        network_options: Keyword arguments of ``network_class``.
-        mode: ``"next_step"`` (the paper: residuals of windows, rolled out) or ``"direct"``: a
-            :class:`~torch_ampn.forming.direct.DirectSurrogate` that maps the initial state and
-            the process settings to the displacement at every saved step in one pass (trained
-            on whole trajectories, ``data.mode: direct``, which the CLI links; no rollout, no
-            training noise). Validation, test, predict and design studies work with both.
-        base: Direct mode: predict the departure from the mean training displacement
-            (``"mean"``, one mesh), the displacement itself (``"initial"``) or the departure from
-            the data module's ``prior`` (``"prior"``, e.g. POD + GP's prediction; set ``data.prior``).
-        time_frequencies: Direct mode: frequencies of the time encoding.
-        decoder_layers: Direct mode: linear maps of the time decoder.
-        loss_steps: Direct mode: random saved steps per batch in the loss (``None``: all).
-        settings_input: Direct mode: the grippers' positions and forces at t = 0 as a global
-            input of every fine node and of the decoder.
-        position_frequencies: Direct mode: Fourier features of the initial position read by the
-            decoder (frequencies per axis; 0: none).
-        decoder_modes: Direct mode: learned modes with coefficients of the settings and time,
-            added to the time decoder (:class:`~torch_ampn.forming.direct.ModeDecoder`; 0: none).
-        mode_channels: Direct mode: width of the modes' coefficient MLP (``None``: ``mlp_channels``).
-        mode_layers: Direct mode: linear maps of the coefficient MLP.
-        space_time_modes: Direct mode: modes of the node and the time, coefficients of the
-            settings alone (POD + GP's form).
-        base_input: Direct mode, ``base: mean``: the nodes read the mean training displacement at
-            this many evenly spaced steps and the decoder at the asked time (0: neither).
-        target_scale: Direct mode: the scale of the network's output, ``"global"``, or with
-            ``base: mean`` the training spread at each step (``"step"``) or node and step
-            (``"node_step"``; :class:`~torch_ampn.forming.direct.DirectSurrogate`).
         hidden_channels: Latent size d (paper: 128).
         mlp_channels: Hidden width of every layer MLP (paper: 128, whatever d is).
         num_levels: V-cycle levels L + 1 (paper: 4; 1 = flat MeshGraphNet baseline).
@@ -198,56 +110,26 @@ class AMPNLightningModule(L.LightningModule):
         post_layers: Post stack layers (paper: 3).
         up_layers: Up stack layers (paper: 2).
         aggr: Aggregation of all layers (``"max"``, ``"sum"``, ``"mean"``).
-        diffusion_steps: ROBIN's K (1 = AMPN).
         contact_radius: Contact radius r (mm).
         contact_k: Contact neighbours per other component.
         contact_mode: ``"component_knn"`` (the paper) or ``"radius"`` (all nodes within r).
-        contact_positions: ``"current"`` (the paper: rebuilt every step) or ``"initial"`` (ROBIN).
-        center_target: Standardise the target residual (``False``: only scale it).
-        predict_change: Predict the change of the residual instead of the residual.
-        huber_delta: Huber form of the loss beyond this normalised error (``None``: MSE).
-        coarse_loss_weight: Weight of the multilevel loss's coarse terms (0: the paper's MSE).
+        component_encoding: ``"onehot"`` (the paper's component one-hot, one part) or
+            ``"stack"`` (plies below and above a ply node: the same on parts of any ply count;
+            :func:`~torch_ampn.forming.features.component_features`).
         lr: Peak learning rate (paper: 1e-4).
         final_lr: Learning rate at the last step (paper: 1e-5).
         warmup_steps: Linear warm-up steps (paper: 1,000).
-        position_noise: Training noise on ply positions, in units of :math:`\sigma_x` (paper: 1e-5).
-        residual_noise: Training noise on the previous residual, in units of :math:`\sigma_x` (paper: 1e-6).
-        correct_target: Subtract the position noise from the target residual, so that the model learns
-            to pull a perturbed node back to the true next position (as MeshGraphNets do); only
-            matters for noise levels well above the paper's.
-        correlated_noise: Add the position noise to the previous residual too, as it is when
-            :math:`x^{t-1}` comes from a rollout: a position error :math:`\epsilon` of the last
-            step is also an error of :math:`\Delta u^{t-1} = x^{t-1} - x^{t-2}` (the noise of
-            MeshGraphNets, where velocities are differences of noisy positions). With
-            ``correct_target`` the model then learns to undo an error of its last step in
-            both inputs. ``False`` (the paper): independent noise on the two inputs.
-        pushforward: Probability that a training batch starts from the model's own one-step
-            prediction of :math:`x^{t-1}` instead of the true one (the pushforward trick of
-            Brandstetter et al., 2022): the network predicts :math:`\Delta u^{t-1}` from the
-            window ``(t-2, t-1)`` without gradient, its error moves the ply positions and the
-            previous residual, and the target becomes :math:`x^t - \hat x^{t-1}`, so that the
-            model learns to correct the errors a rollout feeds it. Windows at ``t = 1`` stay
-            as they are. Costs one forward pass per affected batch (``K`` in ROBIN mode);
-            0 (the paper): off.
-        statistics_samples: Training windows used for the normalisation statistics.
-        rollout_seed: Seed of the noise input during rollouts (rollouts are reproducible).
+        statistics_samples: Training samples used for the normalisation statistics.
         touch_radii: Radii (mm) tried for the rigid-with-punch baseline; the best is reported.
         output_dir: Where test/predict write their files (default: the logger's folder, else ``outputs``).
         export_xdmf: Write XDMF rollouts in test and predict.
-        compile_network: Run the training step's network through ``torch.compile(dynamic=True)``
-            (faster per step after a one-time compile at the first step; ``benchmarks/training_step.py``
-            measures both). Validation, test and predict stay eager, and
-            checkpoints are the same as without it. If compiling fails (e.g. no C++ compiler),
-            training warns and goes on eager.
-        fast_rollout: Roll out (validate, test, predict) on the static-shape, compiled path
-            (:class:`~torch_ampn.rollout.fast.FastRollout`: the same result up to summation
-            order, compiled once per mesh); ``False``: the plain path of
-            :func:`~torch_ampn.rollout.rollout`. Contact settings without a fast path
-            (``contact_mode="radius"``) take the plain path with a warning.
         check_mesh: Refuse to validate, test or predict (outside ``fit``) trajectories whose
             mesh is not one of the training split's (the checkpoint records them), with a
             message naming the file; ``False`` for a model meant for other parts.
     """
+
+    #: The model's name in checkpoints (``checkpoint["torch_ampn_model"]``) and in ``data.mode``.
+    MODEL: str = ""
 
     def __init__(
         self,
@@ -262,61 +144,94 @@ class AMPNLightningModule(L.LightningModule):
         post_layers: int = 3,
         up_layers: int = 2,
         aggr: str = "max",
-        diffusion_steps: int = 1,
         contact_radius: float = 3.0,
         contact_k: int = 3,
         contact_mode: str = "component_knn",
-        contact_positions: str = "current",
-        center_target: bool = True,
-        predict_change: bool = False,
-        huber_delta: float | None = None,
-        coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
-        prior_features: bool = False,
-        network_class: str | None = None,
-        network_options: dict[str, Any] | None = None,
-        mode: str = "next_step",
-        base: str = "mean",
-        time_frequencies: int = 5,
-        decoder_layers: int = 3,
-        loss_steps: int | None = None,
-        settings_input: bool = True,
-        position_frequencies: int = 4,
-        decoder_modes: int = 0,
-        mode_channels: int | None = None,
-        mode_layers: int = 3,
-        space_time_modes: bool = False,
-        base_input: int = 0,
-        target_scale: str = "global",
         lr: float = 1e-4,
         final_lr: float = 1e-5,
         warmup_steps: int = 1000,
-        position_noise: float = 1e-5,
-        residual_noise: float = 1e-6,
-        correct_target: bool = True,
-        correlated_noise: bool = False,
-        pushforward: float = 0.0,
         statistics_samples: int = 1000,
-        rollout_seed: int = 0,
         touch_radii: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0),
         output_dir: str | None = None,
         export_xdmf: bool = True,
-        compile_network: bool = False,
-        fast_rollout: bool = True,
         check_mesh: bool = True,
     ) -> None:
         super().__init__()
-        if not 0.0 <= pushforward <= 1.0:
-            raise ValueError(f"pushforward is a probability in [0, 1], got {pushforward}")
+        if not self.MODEL:
+            raise TypeError(
+                "SurrogateLightningModule is the shared base: "
+                "use NextStepLightningModule or DirectLightningModule"
+            )
         self.save_hyperparameters()
-        self.surrogate = build_surrogate(self.hparams)
+        self.surrogate = self.build_surrogate()
         self._report: TestReport | None = None
         # the loss, through the network compiled at the first training step (kept out of the module tree)
-        self._loss = CompiledLoss(self.surrogate, enabled=compile_network and not self.direct)
+        self._loss = CompiledLoss(self.surrogate, enabled=self._compile_loss())
         # topology key -> node count of the training split's meshes (set by fit, kept in checkpoints)
         self._training_meshes: dict[str, int] | None = None
         # id of the Trainer whose fit _prepare_fit has done (configure_model and setup both ask)
         self._fit_prepared_for: int | None = None
+
+    @classmethod
+    def check_arguments(cls, kwargs: dict[str, Any]) -> None:
+        """``TypeError`` in one line for arguments the shared base does not take (before ``__init__``).
+
+        Names the other model's module where the argument is that model's.
+        """
+        shared = inspect.signature(SurrogateLightningModule.__init__).parameters
+        for name in kwargs:
+            if name in shared:
+                continue
+            owner = next(
+                (k.__name__ for k in SurrogateLightningModule.__subclasses__()
+                 if k is not cls and name in inspect.signature(k.__init__).parameters),
+                None,
+            )  # fmt: skip
+            where = f"{name} is {owner}'s" if owner else f"no argument {name}"
+            raise TypeError(f"{cls.__name__}: {where} (see help({cls.__name__}))")
+
+    # ---- what a subclass decides -----------------------------------------------------------
+    def build_surrogate(self) -> AMPNSurrogate | DirectSurrogate:
+        """The surrogate of the module's hyper-parameters (the subclass's model)."""
+        raise NotImplementedError
+
+    def _compile_loss(self) -> bool:
+        """Whether the training loss runs through the compiled network (see :class:`CompiledLoss`)."""
+        return False
+
+    def training_inputs(self, batch: HierarchicalData) -> HierarchicalData:
+        """The batch as the loss sees it (here: as it is)."""
+        return batch
+
+    def _generator(self, index: int) -> torch.Generator | None:
+        """The noise generator of rollout ``index`` (``None``: the model draws no noise)."""
+        return None
+
+    @property
+    def _fast_rollout(self) -> bool:
+        """Whether rollouts take the static-shape, compiled path where the surrogate allows it."""
+        return True
+
+    @classmethod
+    def load_from_checkpoint(  # type: ignore[override]
+        cls,
+        checkpoint_path: str | os.PathLike,
+        map_location: Any = None,
+        strict: bool | None = None,
+        **kwargs: Any,
+    ) -> SurrogateLightningModule:
+        """The module a checkpoint holds, as its own class (see :func:`~torch_ampn.training.load_module`).
+
+        Called on a subclass, a checkpoint of the other model is refused in one line.
+        ``kwargs`` override saved hyper-parameters (``weights_only`` is accepted and ignored:
+        checkpoints always load weights-only).
+        """
+        from torch_ampn.training.checkpoint import load_module
+
+        kwargs.pop("weights_only", None)
+        kwargs.pop("hparams_file", None)
+        return load_module(checkpoint_path, map_location=map_location, strict=strict, expected=cls, **kwargs)
 
     # ---- set-up --------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -369,7 +284,8 @@ class AMPNLightningModule(L.LightningModule):
         self._fit_prepared_for = trainer
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Store the random number generators' states, so that a resumed fit draws what it would have."""
+        """Store the model's name and the generators' states (a resumed fit draws what it would have)."""
+        checkpoint["torch_ampn_model"] = self.MODEL
         checkpoint["rng_states"] = rng_states()
         if self._training_meshes is not None:
             checkpoint["training_meshes"] = dict(self._training_meshes)
@@ -395,6 +311,12 @@ class AMPNLightningModule(L.LightningModule):
         calls this hook after building the module from the checkpoint's hyper-parameters and
         before loading its weights, so the surrogate is rebuilt with that width here.
         """
+        saved_model = checkpoint_model(checkpoint)
+        if saved_model != self.MODEL:
+            raise ValueError(
+                f"the checkpoint holds a {saved_model} model, not a {type(self).__name__}'s: "
+                "load it with torch_ampn.training.load_module"
+            )
         # applied when training starts: Lightning draws from the generator in between (a new
         # training-loader iterator takes a worker seed), which the stopped run had done before
         object.__setattr__(self, "_rng_states_to_restore", checkpoint.get("rng_states", {}))
@@ -405,8 +327,8 @@ class AMPNLightningModule(L.LightningModule):
             return
         self.hparams.mlp_channels = self.hparams.hidden_channels
         device = next(self.surrogate.parameters()).device
-        self.surrogate = build_surrogate(self.hparams).to(device)
-        self._loss = CompiledLoss(self.surrogate, enabled=self.hparams.compile_network and not self.direct)
+        self.surrogate = self.build_surrogate().to(device)
+        self._loss = CompiledLoss(self.surrogate, enabled=self._compile_loss())
 
     def fit_statistics(self, samples: Any) -> None:
         """Accumulate normalisation statistics from training windows (an iterable), then freeze them."""
@@ -457,26 +379,6 @@ class AMPNLightningModule(L.LightningModule):
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     # ---- training --------------------------------------------------------------------------
-    def add_training_noise(self, data: HierarchicalData) -> HierarchicalData:
-        r"""The module's training noise (:func:`~torch_ampn.training.inputs.add_training_noise`), in place.
-
-        ``position_noise`` and ``residual_noise`` are in units of the surrogate's :math:`\sigma_x`.
-        """
-        hp = self.hparams
-        return add_training_noise(
-            data, self.surrogate.position_std, hp.position_noise, hp.residual_noise,
-            correct_target=hp.correct_target, correlated_noise=hp.correlated_noise,
-        )  # fmt: skip
-
-    def pushforward_inputs(self, data: HierarchicalData) -> HierarchicalData:
-        """:func:`~torch_ampn.training.inputs.pushforward_inputs` with the surrogate's residual, in place."""
-        return pushforward_inputs(data, self.surrogate.predict_residual)
-
-    @property
-    def _compiled_network(self):
-        """The compiled network (``None``: not yet compiled; ``False``: eager), see :class:`CompiledLoss`."""
-        return self._loss.network
-
     def training_loss(self, data: HierarchicalData) -> Tensor:
         """The surrogate's loss on a (noised) batch.
 
@@ -487,19 +389,8 @@ class AMPNLightningModule(L.LightningModule):
 
     @property
     def direct(self) -> bool:
-        """Whether the model is a :class:`~torch_ampn.forming.direct.DirectSurrogate` (``mode: direct``)."""
-        return self.hparams.get("mode", "next_step") == "direct"
-
-    def training_inputs(self, batch: HierarchicalData) -> HierarchicalData:
-        """The batch as the loss sees it, in place: pushed forward (probability ``pushforward``), noised.
-
-        A direct model's batch (initial states) is taken as it is.
-        """
-        if self.direct:
-            return batch
-        if self.hparams.pushforward > 0 and float(torch.rand(())) < self.hparams.pushforward:
-            batch = self.pushforward_inputs(batch)
-        return self.add_training_noise(batch)
+        """Whether the model is a :class:`~torch_ampn.forming.direct.DirectSurrogate`."""
+        return isinstance(self.surrogate, DirectSurrogate)
 
     def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
         """One loss on a batch: of next-step windows (see :meth:`training_inputs`) or whole trajectories."""
@@ -508,23 +399,20 @@ class AMPNLightningModule(L.LightningModule):
         return loss
 
     # ---- rollouts ----------------------------------------------------------------------------
-    def _generator(self, index: int) -> torch.Generator:
-        return torch.Generator(device=self.device).manual_seed(self.hparams.rollout_seed + index)
-
     def rollout_item(self, item: RolloutItem, progress: bool = False) -> tuple[Tensor, float]:
         """Roll the surrogate out over ``item``'s trajectory: ``([T+1, N, 3] positions, seconds)``."""
         generator = self._generator(item.index)
         start = time.perf_counter()
         (pred,) = rollout_surrogate(
             self.surrogate, [item.trajectory], item.hierarchy, [generator],
-            fast=self.hparams.get("fast_rollout", True), device=self.device, progress=progress,
+            fast=self._fast_rollout, device=self.device, progress=progress,
         )  # fmt: skip
         return pred, time.perf_counter() - start
 
     def _check_meshes(self, split: str) -> None:
         """With ``check_mesh``: ``ValueError`` if a trajectory of ``split`` has a mesh not trained on."""
         source = forecast_source(getattr(self.trainer, "datamodule", None))
-        if not (self.hparams.get("check_mesh", True) and self._training_meshes):
+        if not (self.hparams.check_mesh and self._training_meshes):
             return
         if source is not None:
             source.check_meshes(self._training_meshes, split)
@@ -604,7 +492,7 @@ class AMPNLightningModule(L.LightningModule):
         start = time.perf_counter()
         preds = rollout_surrogate(
             self.surrogate, [it.trajectory for it in items], items[0].hierarchy,
-            [self._generator(it.index) for it in items], fast=self.hparams.get("fast_rollout", True),
+            [self._generator(it.index) for it in items], fast=self._fast_rollout,
             batch_size=self._rollout_batch_size, device=self.device,
         )  # fmt: skip
         share = (time.perf_counter() - start) / len(items)

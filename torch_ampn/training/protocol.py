@@ -13,7 +13,7 @@ from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
 
 @runtime_checkable
 class ForecastDataSource(Protocol):
-    """The methods :class:`~torch_ampn.training.AMPNLightningModule` calls on ``trainer.datamodule``.
+    """The methods :class:`~torch_ampn.training.SurrogateLightningModule` calls on ``trainer.datamodule``.
 
     :class:`~torch_ampn.training.AMPNDataModule` implements them. A data module of your own that
     implements them all gets what the module does with them: the model checked against the data
