@@ -387,11 +387,6 @@ class SurrogateLightningModule(L.LightningModule):
         """
         return self._loss(data)
 
-    @property
-    def direct(self) -> bool:
-        """Whether the model is a :class:`~torch_ampn.forming.direct.DirectSurrogate`."""
-        return isinstance(self.surrogate, DirectSurrogate)
-
     def training_step(self, batch: HierarchicalData, batch_idx: int) -> Tensor:
         """One loss on a batch: of next-step windows (see :meth:`training_inputs`) or whole trajectories."""
         loss = self.training_loss(self.training_inputs(batch))
