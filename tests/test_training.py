@@ -842,6 +842,15 @@ def test_a_new_checkpoint_names_its_model_and_the_cli_refuses_the_other_models_c
         main(["test", "--ckpt_path", str(TINY_CKPT), "--model", "DirectLightningModule"])
 
 
+def test_a_config_or_flag_with_the_old_model_mode_is_refused_in_one_line(tmp_path):
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump({"model": {"mode": "direct", "hidden_channels": 8}}))
+    with pytest.raises(SystemExit, match=rf"^torch-ampn: {old}: model.mode is gone: name the module instead"):
+        main(["fit", "--config", str(old)])
+    with pytest.raises(SystemExit, match=r"^torch-ampn: --model.mode: model.mode is gone"):
+        main(["fit", "--model.mode", "direct"])
+
+
 # ---- bad input: one line naming the file and the field ------------------------------------------
 @pytest.mark.parametrize(
     "name, text, message",

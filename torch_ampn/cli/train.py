@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import yaml
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from torch_ampn.training.checkpoint import MODULES, module_arguments, module_class, module_defaults
@@ -109,6 +110,26 @@ def shortfall(steps: int, planned: int) -> str | None:
     )
 
 
+def _refuse_model_mode(args: list[str]) -> None:
+    """Exit in one line where a config file or flag gives ``model.mode`` (a class names the model now)."""
+    how = (
+        "model.mode is gone: name the module instead (model.class_path: torch_ampn.training."
+        "DirectLightningModule or NextStepLightningModule, its arguments under model.init_args)"
+    )
+    if any(a == "--model.mode" or a.startswith("--model.mode=") for a in args):
+        sys.exit(f"torch-ampn: --model.mode: {how}")
+    files = [b for a, b in zip(args, args[1:], strict=False) if a in ("--config", "-c")]
+    files += [a.split("=", 1)[1] for a in args if a.startswith("--config=")]
+    for name in files:
+        try:
+            config = yaml.safe_load(Path(name).read_text())
+        except (OSError, yaml.YAMLError):
+            continue  # the parser reports it
+        model = config.get("model") if isinstance(config, dict) else None
+        if isinstance(model, dict) and "mode" in model:
+            sys.exit(f"torch-ampn: {name}: {how}")
+
+
 class AMPNCLI(LightningCLI):
     """LightningCLI with torch-ampn's model -> data links; checkpoint settings never hide given ones."""
 
@@ -145,6 +166,7 @@ class AMPNCLI(LightningCLI):
         :meth:`before_instantiate_classes` puts the given runtime options back and refuses given
         settings of the trained network.
         """
+        _refuse_model_mode(list(sys.argv[1:] if args is None else args))
         super().parse_arguments(parser, args)
         self._given_model = None
         subcommand = self.config.get("subcommand")
