@@ -225,12 +225,15 @@ class SurrogateLightningModule(L.LightningModule):
 
         Called on a subclass, a checkpoint of the other model is refused in one line.
         ``kwargs`` override saved hyper-parameters (``weights_only`` is accepted and ignored:
-        checkpoints always load weights-only).
+        checkpoints always load weights-only; ``hparams_file`` is refused).
         """
         from torch_ampn.training.checkpoint import load_module
 
         kwargs.pop("weights_only", None)
-        kwargs.pop("hparams_file", None)
+        if kwargs.pop("hparams_file", None) is not None:
+            raise TypeError(
+                f"{cls.__name__}.load_from_checkpoint: hparams_file is not read; give overrides as keywords"
+            )
         return load_module(checkpoint_path, map_location=map_location, strict=strict, expected=cls, **kwargs)
 
     # ---- set-up --------------------------------------------------------------------------
