@@ -30,6 +30,15 @@ def small_sim():
 
 
 @pytest.fixture(scope="session")
+def quick_sim():
+    """``small_sim`` for a quarter of the stroke (``torch_ampn.testing.QUICK_SIMULATOR``): 4x quicker."""
+    from torch_ampn.sim import StampFormingConfig
+    from torch_ampn.testing import QUICK_SIMULATOR
+
+    return StampFormingConfig.from_dict(QUICK_SIMULATOR)
+
+
+@pytest.fixture(scope="session")
 def small_runs(small_sim):
     """Seeds 3 and 4 of ``small_sim``, simulated once per session: read them, never modify them."""
     from torch_ampn.sim import simulate_batch

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,7 +11,11 @@ from torch_ampn.data.dataset import split_files
 from torch_ampn.sim import StampFormingConfig, generate_dataset
 from torch_ampn.sim import dataset as dataset_module
 
-TINY = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
+# A quarter of the stroke in a quarter of the time: the same punch speed, a quarter of the solver's
+# substeps (132). These tests check files, shards and threads, not the forming.
+TINY = StampFormingConfig(
+    ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4, duration=0.25, stroke=15.0
+)
 DATA = Path(__file__).parent / "data" / "tiny"
 
 
@@ -100,7 +105,7 @@ def test_generate_sets_blown_up_runs_aside_and_does_not_simulate_them_again(tmp_
 
 def test_generate_refuses_other_settings_in_same_folder(tmp_path):
     generate_dataset(tmp_path, 1, 0, 0, workers=1, compile=False, progress=False, config=TINY)
-    other = StampFormingConfig(ply_cells=5, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
+    other = dataclasses.replace(TINY, ply_cells=5)
     with pytest.raises(ValueError, match="other simulator settings"):
         generate_dataset(tmp_path, 1, 0, 0, workers=1, compile=False, progress=False, config=other)
 
@@ -177,7 +182,7 @@ def test_check_summarises_a_dataset_and_names_its_problems(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "train       2       1" in out and "OK" in out
     paths[1].write_bytes(b"truncated")  # a broken file ...
-    other = StampFormingConfig(ply_cells=5, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
+    other = dataclasses.replace(TINY, ply_cells=5)
     generate_dataset(tmp_path / "other", 0, 0, 1, **{**options, "config": other})
     extra = tmp_path / "ds" / "test" / "traj_999999.pt"  # ... and a test file of another mesh
     extra.write_bytes((tmp_path / "other" / "test" / "traj_200000.pt").read_bytes())
@@ -233,7 +238,8 @@ def test_generate_from_a_script_without_main_guard_fails_in_one_line_instead_of_
     script.write_text(
         "from pathlib import Path\n"
         "from torch_ampn.sim import StampFormingConfig, generate_dataset\n"
-        "cfg = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)\n"
+        "cfg = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4,\n"
+        "                         duration=0.25, stroke=15.0)\n"
         "options = dict(workers=2, batch=1, compile=False, progress=False, config=cfg)\n"
         "generate_dataset(Path('ds'), 2, 0, 0, **options)\n"
     )

@@ -78,22 +78,22 @@ def test_measure_weights_of_a_name_and_of_a_weighted_sum():
             measure_weights(bad)
 
 
-def test_explicit_settings_simulate_as_their_seed_does(small_sim):
-    where, force = sample_process(small_sim, 7)
-    by_seed = simulate_batch(small_sim, [7])[0]
-    by_settings = simulate_batch(small_sim, settings=[(where, force)])[0]
+def test_explicit_settings_simulate_as_their_seed_does(quick_sim):
+    where, force = sample_process(quick_sim, 7)
+    by_seed = simulate_batch(quick_sim, [7])[0]
+    by_settings = simulate_batch(quick_sim, settings=[(where, force)])[0]
     assert torch.equal(by_seed.pos, by_settings.pos)
     assert by_settings.meta["gripper_edge_fraction"] == where.tolist()
     with pytest.raises(ValueError, match="gripper_forces must be >= 0 N"):
-        simulate_batch(small_sim, settings=[(where, [-1.0, 2.0])])
+        simulate_batch(quick_sim, settings=[(where, [-1.0, 2.0])])
 
 
-def test_verify_with_the_simulator_as_its_own_predictor(small_sim):
+def test_verify_with_the_simulator_as_its_own_predictor(quick_sim):
     """Predicted == simulated (eager, deterministic): Spearman 1, the rank counted by hand."""
     chosen = np.array([0.5, 0.5, 50.0, 50.0])
     other = np.array([0.2, 0.8, 90.0, 10.0])
     check = verify_choice(
-        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2,
+        quick_sim, chosen, simulator_predictor(quick_sim), "draw_in_mean", num_random=3, seed=2,
         alternatives={"other": other},
     )  # fmt: skip
     alt = check.alternatives["other"]
@@ -106,16 +106,16 @@ def test_verify_with_the_simulator_as_its_own_predictor(small_sim):
     assert check.rank == 1 + int((check.random_simulated < check.chosen_simulated).sum())
     assert check.to_dict()["percentile"] == (check.rank - 1) / 4
     with pytest.raises(ValueError, match="at least 2 random settings"):
-        verify_choice(small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=1)
+        verify_choice(quick_sim, chosen, simulator_predictor(quick_sim), "draw_in_mean", num_random=1)
 
 
-def test_runs_judge_each_setting_by_its_mean_over_perturbed_simulations(small_sim):
+def test_runs_judge_each_setting_by_its_mean_over_perturbed_simulations(quick_sim):
     """Run 0 is the unperturbed simulator, run k the simulator from its own moved start; mean by hand."""
     from scipy.stats import spearmanr
 
     chosen = np.array([0.5, 0.5, 50.0, 50.0])
     check = verify_choice(
-        small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", num_random=3, seed=2,
+        quick_sim, chosen, simulator_predictor(quick_sim), "draw_in_mean", num_random=3, seed=2,
         runs=3, repeat=1e-3,
     )  # fmt: skip
     runs = check.run_measures["draw_in_mean"]  # [3, 4]
@@ -127,15 +127,15 @@ def test_runs_judge_each_setting_by_its_mean_over_perturbed_simulations(small_si
     # run 2 of the chosen setting (index 0 of 4 settings): seed 2 * 4, moved by 1e-3 mm, judged
     # against the part's unmoved start
     where, force = [float(v) for v in chosen[:2]], [float(v) for v in chosen[2:]]
-    again = simulate_batch(small_sim, [8], settings=[(where, force)], perturbation=1e-3)[0]
-    part = settings_trajectories(small_sim, SettingsSpace.from_config(small_sim), chosen[None])[0]
+    again = simulate_batch(quick_sim, [8], settings=[(where, force)], perturbation=1e-3)[0]
+    part = settings_trajectories(quick_sim, SettingsSpace.from_config(quick_sim), chosen[None])[0]
     assert part_quality(part, again.pos[-1])["draw_in_mean"] == pytest.approx(runs[2, 0], rel=1e-9)
     assert not np.array_equal(runs[1], runs[2])  # each run its own perturbation
     pairs = [spearmanr(runs[i, 1:], runs[j, 1:]).statistic for i, j in [(0, 1), (0, 2), (1, 2)]]
     assert check.repeat_spearman_by_measure["draw_in_mean"] == pytest.approx(np.mean(pairs))
     assert check.repeat == 1e-3 and check.to_dict()["runs"] == 3
     with pytest.raises(ValueError, match="runs must be >= 1"):
-        verify_choice(small_sim, chosen, simulator_predictor(small_sim), "draw_in_mean", runs=0)
+        verify_choice(quick_sim, chosen, simulator_predictor(quick_sim), "draw_in_mean", runs=0)
 
 
 def test_the_spearman_ceiling_by_hand():

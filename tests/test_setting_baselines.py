@@ -195,32 +195,33 @@ def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
     assert not report(29.9, 74.9)["blown_up"]
 
 
-def test_the_chaos_floor_and_the_spread_command(small_runs, tmp_path, capsys):
+def test_the_chaos_floor_and_the_spread_command(quick_sim, tmp_path, capsys):
     """The same settings from a start moved by 1e-6 mm: a small but real difference; the command's JSON."""
     from torch_ampn.cli.data import main
     from torch_ampn.sim import simulate_batch
     from torch_ampn.sim.config import StampFormingConfig
     from torch_ampn.sim.spread import chaos_floor, trajectory_rmse
 
-    traj = small_runs[0]
+    runs = simulate_batch(quick_sim, seeds=[3, 4])
+    traj = runs[0]
     cfg = StampFormingConfig.from_dict(traj.meta["config"])
     again = simulate_batch(cfg, [traj.meta["seed"]], perturbation=0.0)[0]
     assert torch.equal(again.pos, traj.pos)  # eager: the same settings repeat bit for bit
     floor = chaos_floor([traj], perturbation=1e-6)
     # a small but real difference: under a tenth of what the other setting changes (the aim)
-    assert 0 < floor["mean"] < 0.1 * trajectory_rmse(small_runs[1], traj) and floor["count"] == 1
+    assert 0 < floor["mean"] < 0.1 * trajectory_rmse(runs[1], traj) and floor["count"] == 1
     moved = simulate_batch(cfg, [traj.meta["seed"]], perturbation=1e-6)[0]
     start = (moved.pos[0] - traj.pos[0]).abs()
     assert moved.meta["initial_perturbation"] == 1e-6 and 0 < float(start.max()) <= 1e-5  # float32 rounding
     # the command on a folder of the two runs
     (tmp_path / "train").mkdir()
-    for i, t in enumerate(small_runs):
+    for i, t in enumerate(runs):
         t.save(tmp_path / "train" / f"traj_{i:06d}.pt")
     assert main(["spread", str(tmp_path), "--chaos", "1", "--json", str(tmp_path / "spread.json")]) == 0
     report = json.loads((tmp_path / "spread.json").read_text())
     assert report["chaos_floor"]["mean"] == pytest.approx(floor["mean"])
     assert report["spread_over_floor"] == pytest.approx(report["from_mean"]["mean"] / floor["mean"])
-    assert report["tool_travel_mm"] == pytest.approx(60.0, abs=1e-3) and not report["blown_up"]
+    assert report["tool_travel_mm"] == pytest.approx(quick_sim.stroke, abs=1e-3) and not report["blown_up"]
     assert "spread / floor" in capsys.readouterr().out
 
 
@@ -253,12 +254,12 @@ def test_two_run_reliability_by_hand(small_runs):
         two_run_reliability(runs[:2], runs[:2])
 
 
-def test_the_spread_command_reports_the_two_run_reliability(small_sim, tmp_path, capsys):
+def test_the_spread_command_reports_the_two_run_reliability(quick_sim, tmp_path, capsys):
     from torch_ampn.cli.data import main
     from torch_ampn.sim import simulate_batch
 
     (tmp_path / "train").mkdir()
-    for t in simulate_batch(small_sim, seeds=[5, 6, 7]):
+    for t in simulate_batch(quick_sim, seeds=[5, 6, 7]):
         t.save(tmp_path / "train" / f"traj_{t.meta['seed']:06d}.pt")
     assert main(["spread", str(tmp_path), "--chaos", "3", "--json", str(tmp_path / "spread.json")]) == 0
     report = json.loads((tmp_path / "spread.json").read_text())

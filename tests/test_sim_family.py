@@ -19,6 +19,7 @@ from torch_ampn.sim import (
 )
 from torch_ampn.sim.geometry import die_surface
 from torch_ampn.sim.simulate import sample_process
+from torch_ampn.testing import QUICK_SIMULATOR
 
 TINY = StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=4)
 
@@ -106,8 +107,8 @@ def test_the_data_cli_makes_a_family_dataset_and_refuses_a_bad_family_file(tmp_p
     assert err.startswith(f"torch-ampn-data: error: {bad}: not a family of parts") and "colour" in err, err
     assert not out.exists()
     args = ["generate", "--out", str(out), "--family", str(spec), "--num-train", "1", "--num-val", "0"]
-    args += ["--num-test", "0", "--workers", "1", "--no-compile"]
-    assert data_cli.main(args) == 0  # the default (coarse) resolution, 2 plies
+    args += ["--num-test", "0", "--workers", "1", "--no-compile", "--simulator", json.dumps(QUICK_SIMULATOR)]
+    assert data_cli.main(args) == 0  # 2 plies
     (path,) = sorted((out / "train").glob("*.pt"))
     part = Trajectory.load(path).meta["part"]
     assert part["shape"] == "single_dome" and len(part["ply_angles"]) == 2
