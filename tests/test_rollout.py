@@ -9,7 +9,7 @@ from torch_ampn.baselines import RigidWithPunch, static_plies
 from torch_ampn.data import HierarchyCache, NodeType, step_sample
 from torch_ampn.forming import AMPNSurrogate
 from torch_ampn.hierarchy.hierarchical_data import HierarchicalData
-from torch_ampn.rollout import rollout, rollout_rmse
+from torch_ampn.rollout import one_step_predictions, rollout, rollout_plain, rollout_rmse
 from torch_ampn.sim import process_trajectories, process_trajectory
 
 
@@ -49,6 +49,35 @@ def test_oracle_rollout_reproduces_the_trajectory_and_its_windows(small_runs, hi
     pred = rollout(oracle, traj, hierarchy)
     assert seen == list(range(1, traj.num_steps + 1))
     torch.testing.assert_close(pred, traj.pos, atol=1e-4, rtol=0)
+
+
+def test_a_constant_error_per_step_compounds_in_the_rollout_and_not_in_one_step(small_runs, hierarchy):
+    """A predictor off by a constant ``b`` per step (hand computation): the teacher-forced step errs
+    |b| at every step; the rollout accumulates it, t |b| at step t; from the true state at step s,
+    (t - s) |b|, and rows 0..s are the trajectory's own."""
+    traj = small_runs[0]
+    bias = torch.tensor([0.3, -0.4, 1.2])  # |b| = 1.3 mm; the RMSE over 3 coordinates is |b| / sqrt 3
+
+    def biased(data):
+        t = int(data.step)
+        return traj.pos[t] - traj.pos[t - 1] + bias  # the true step's residual, plus b, whatever the state
+
+    ply = traj.ply_mask
+    per_step = 1.3 / math.sqrt(3)
+    steps = torch.arange(traj.num_steps + 1, dtype=torch.float64)
+    one = rollout_rmse(one_step_predictions(biased, traj, hierarchy), traj.pos, ply).double()
+    torch.testing.assert_close(one[1:], torch.full_like(one[1:], per_step), atol=1e-4, rtol=0)
+    full = rollout_rmse(rollout_plain(biased, traj, hierarchy), traj.pos, ply).double()
+    torch.testing.assert_close(full, steps * per_step, atol=1e-3, rtol=0)
+    start = 3
+    late = rollout_plain(biased, traj, hierarchy, start=start)
+    assert torch.equal(late[: start + 1], traj.pos[: start + 1].float())
+    expected = (steps - start).clamp_min(0) * per_step
+    torch.testing.assert_close(rollout_rmse(late, traj.pos, ply).double(), expected, atol=1e-3, rtol=0)
+    tools = ~ply
+    assert torch.equal(late[:, tools], traj.pos[:, tools].float())  # tools on their path
+    with pytest.raises(ValueError, match="start must be in 0..5"):
+        rollout_plain(biased, traj, hierarchy, start=traj.num_steps)
 
 
 def test_rollout_keeps_tools_on_their_prescribed_path(small_runs, hierarchy):

@@ -10,7 +10,7 @@ shapes, compiled and batched over process settings (:class:`FastRollout`);
 
 from torch_ampn.rollout.cache import cached_fast_rollout
 from torch_ampn.rollout.fast import FastPathUnavailable, FastRollout, fast_path_supported
-from torch_ampn.rollout.plain import Predictor, Transform, rollout_plain, rollout_rmse
+from torch_ampn.rollout.plain import Predictor, Transform, one_step_predictions, rollout_plain, rollout_rmse
 from torch_ampn.rollout.surrogate import rollout, rollout_settings, rollout_surrogate
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "Transform",
     "cached_fast_rollout",
     "fast_path_supported",
+    "one_step_predictions",
     "rollout",
     "rollout_plain",
     "rollout_rmse",

@@ -37,15 +37,20 @@ def rollout_plain(
     num_steps: int | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
+    start: int = 0,
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state, window by window.
 
     The plain path of :func:`torch_ampn.rollout.rollout` (``fast=False``), whose docstring gives
     the arguments; returns the predicted positions ``[num_steps + 1, N, 3]`` (float32, CPU).
+    ``start``: roll out from the true state at this step instead (rows ``0 .. start`` are the
+    trajectory's own): how the error grows from a correct state halfway through the forming.
     """
     steps = traj.num_steps if num_steps is None else num_steps
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
+    if not 0 <= start < steps:
+        raise ValueError(f"start must be in 0..{steps - 1}, got {start}")
     if device is None:
         device = hierarchy.mesh(0).edge_index.device
     device = torch.device(device)
@@ -55,9 +60,9 @@ def rollout_plain(
     ply = traj.ply_mask  # [N]
     # Prediction buffer: tools on their prescribed path, plies at rest until predicted.
     pred = traj.pos.clone().float()  # [T+1, N, 3]
-    pred[1:, ply] = pred[0, ply]
+    pred[start + 1 :, ply] = pred[start, ply]
     state = dataclasses.replace(traj, pos=pred)
-    iterator = range(1, steps + 1)
+    iterator = range(start + 1, steps + 1)
     if progress:
         from tqdm.auto import tqdm
 
@@ -79,6 +84,37 @@ def rollout_plain(
             du = predictor(data).float()  # [N, 3]
             pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
     return pred[: steps + 1].cpu()
+
+
+@torch.no_grad()
+def one_step_predictions(
+    predictor: Predictor,
+    traj: Trajectory,
+    hierarchy: HierarchicalData,
+    contact: Transform | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """Teacher-forced predictions: each step ``t`` predicted from the *true* states ``t-1, t-2``.
+
+    Row ``t`` of the result ``[T+1, N, 3]`` (float32, CPU) is the true state ``t - 1`` moved by
+    the predicted residual on ply nodes (tools on their path; row 0 the initial state). Its
+    error is the single step's, with no error carried over: against :func:`rollout_plain`'s,
+    it tells a wrong step from an error that compounds over the rollout.
+    """
+    if device is None:
+        device = hierarchy.mesh(0).edge_index.device
+    device = torch.device(device)
+    traj = traj.to(device)
+    if hierarchy.mesh(0).edge_index.device != device:
+        hierarchy = hierarchy.clone().to(device)
+    ply = traj.ply_mask  # [N]
+    pred = traj.pos.clone().float()  # [T+1, N, 3]
+    for t in range(1, traj.num_steps + 1):
+        data = step_sample(traj, t, hierarchy)
+        if contact is not None:
+            data = contact(data)
+        pred[t] = next_positions(ply, traj.pos[t - 1].float(), predictor(data).float(), traj.pos[t].float())
+    return pred.cpu()
 
 
 def next_positions(ply: Tensor, pos: Tensor, residual: Tensor, tool_next: Tensor) -> Tensor:
