@@ -14,7 +14,8 @@ trajectory of ``--data-dir``, per saved step ``t``:
   the late error is the late steps' own, and how much the early steps' carried over;
 - beside them the setting-aware baselines fitted on the training split (the mean trajectory, the
   nearest setting, a linear regression on the settings, POD + GP) and, for the single step, the
-  constant-velocity step (step ``t`` repeats step ``t - 1``, from the true states);
+  constant-velocity step (step ``t`` repeats step ``t - 1``) and the mean trajectory's and POD +
+  GP's steps, each taken from the true state ``t - 1`` (``*_one_step``);
 - the R² of the setting effect per step, ``1 - MSE_t / MSE_t(mean trajectory)`` over the test
   trajectories (1: every setting's effect predicted; 0: no better than ignoring the settings).
 
@@ -73,6 +74,17 @@ def zero_noise_predictor(surrogate: Any) -> Any:
     return predict
 
 
+def teacher_forced_steps(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """A whole-trajectory prediction's steps from the true states: ``true_{t-1} + pred_t - pred_{t-1}``.
+
+    ``[T+1, N, 3]``: the one-step error of a predictor of whole trajectories (e.g. POD + GP), for
+    comparison with a next-step model's :func:`~torch_ampn.rollout.one_step_predictions`.
+    """
+    out = true.clone().float()
+    out[1:] = true[:-1].float() + (pred[1:] - pred[:-1]).float()
+    return out
+
+
 def diagnose(module: Any, items: list, restart: int, progress: bool = False) -> dict[str, np.ndarray]:
     """Per-step squared errors ``[K, T+1]`` of the model's rollout, one step and restart over ``items``.
 
@@ -125,6 +137,11 @@ def baselines(train: list, test: list) -> dict[str, np.ndarray]:
         name: np.stack([_squared(b.predict(t), t.pos, t.ply_mask) for t in test])
         for name, b in fitted.items()
     }
+    for name in ("mean_trajectory", "pod_gp"):
+        steps = [teacher_forced_steps(fitted[name].predict(t), t.pos) for t in test]
+        out[f"{name}_one_step"] = np.stack(
+            [_squared(p, t.pos, t.ply_mask) for p, t in zip(steps, test, strict=True)]
+        )
     out["constant_velocity_one_step"] = np.stack(
         [_squared(constant_velocity(t.pos), t.pos, t.ply_mask) for t in test]
     )

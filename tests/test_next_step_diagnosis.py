@@ -29,6 +29,13 @@ def test_constant_velocity_by_hand():
     assert pred == [0.0, 0.0, 2.0, 5.0]  # x_1 = x_0 (no step before), x_2 = 1 + 1, x_3 = 3 + 2
 
 
+def test_a_whole_trajectory_prediction_steps_from_the_true_states():
+    true = torch.tensor([0.0, 1.0, 3.0]).reshape(3, 1, 1)
+    pred = torch.tensor([0.0, 2.0, 2.5]).reshape(3, 1, 1)  # steps of 2 and 0.5
+    stepped = _load().teacher_forced_steps(pred, true)[:, 0, 0].tolist()
+    assert stepped == [0.0, 2.0, 1.5]  # 0 + 2, then 1 + 0.5
+
+
 def test_the_report_of_a_checkpoint(tiny_data, tmp_path):
     from make_fixtures import TINY_CKPT
 

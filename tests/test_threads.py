@@ -243,7 +243,7 @@ def test_the_simulator_and_the_rollouts_follow_at_every_step(monkeypatch, busy_g
         return torch.zeros_like(data["l0"].pos)
 
     monkeypatch.setattr(sim.LaminateModel, "refresh_pairs", refresh)
-    traj = sim.simulate(sim.StampFormingConfig(ply_cells=4, num_steps=3))
+    traj = sim.simulate(sim.StampFormingConfig(ply_cells=4, num_steps=3, duration=0.25, stroke=15.0))
     assert torch.get_num_threads() == 2  # restored after each
     monkeypatch.setattr(GOVERNOR, "_decision", None)  # the rollout starts without the simulator's
     rollout(predictor, traj, HierarchyCache(None, max_levels=2)(traj))
@@ -315,7 +315,9 @@ def predictor(data):
     seen.append((torch.get_num_threads(), GOVERNOR.depth))
     return torch.zeros_like(data["l0"].pos)
 
-traj = torch_ampn.sim.simulate(torch_ampn.sim.StampFormingConfig(ply_cells=4, num_steps=2))
+cfg = torch_ampn.sim.StampFormingConfig(ply_cells=4, punch_cells=(3, 3), die_cells=(3, 3), num_steps=2,
+                                       duration=0.25, stroke=15.0)
+traj = torch_ampn.sim.simulate(cfg)
 rollout(predictor, traj, HierarchyCache(None, max_levels=2)(traj))
 surrogate = AMPNSurrogate(num_components=traj.num_components, num_grippers=1, num_levels=2,
                           hidden_channels=8, mlp_channels=8)
