@@ -15,6 +15,10 @@ from torch_ampn.sim.simulate import LaminateModel, build_mesh, sample_process
 
 CFG = StampFormingConfig(ply_cells=10, punch_cells=(8, 8), die_cells=(9, 9))
 
+#: The module's tests share one worker (pytest-xdist): ``runs`` (two coarse runs, about half a minute)
+#: is simulated once, not once per worker.
+pytestmark = pytest.mark.xdist_group("sim_runs")
+
 
 @pytest.fixture(scope="module")
 def runs():
