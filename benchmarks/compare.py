@@ -391,6 +391,7 @@ def run_cell(
         "device": args.device,
         "data_dir": _relative(args.data_dir),
         "changes": VARIANTS[variant].changes,
+        "base_changes": {k: yaml.safe_load(v) for k, v in args.set or []},  # --set, on every variant
         "rmse": summary["rollout_rmse"],
         "rmse_per_trajectory": {r["trajectory"]: float(r["model"]) for r in rows},
         "rollout_seconds": summary["rollout_seconds"],
