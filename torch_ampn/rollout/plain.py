@@ -28,6 +28,18 @@ Predictor = Callable[[HierarchicalData], Tensor]
 Transform = Callable[[HierarchicalData], HierarchicalData]
 
 
+def _on_device(
+    traj: Trajectory, hierarchy: HierarchicalData, device: torch.device | str | None
+) -> tuple[Trajectory, HierarchicalData, torch.device]:
+    """``traj`` and ``hierarchy`` on ``device`` (default: the hierarchy's); the caller's copies untouched."""
+    if device is None:
+        device = hierarchy.mesh(0).edge_index.device
+    device = torch.device(device)
+    if hierarchy.mesh(0).edge_index.device != device:
+        hierarchy = hierarchy.clone().to(device)  # .to() works in place: keep the caller's copy
+    return traj.to(device), hierarchy, device
+
+
 @torch.no_grad()
 def rollout_plain(
     predictor: Predictor,
@@ -51,12 +63,7 @@ def rollout_plain(
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if not 0 <= start < steps:
         raise ValueError(f"start must be in 0..{steps - 1}, got {start}")
-    if device is None:
-        device = hierarchy.mesh(0).edge_index.device
-    device = torch.device(device)
-    traj = traj.to(device)
-    if hierarchy.mesh(0).edge_index.device != device:
-        hierarchy = hierarchy.clone().to(device)  # .to() works in place: keep the caller's copy
+    traj, hierarchy, device = _on_device(traj, hierarchy, device)
     ply = traj.ply_mask  # [N]
     # Prediction buffer: tools on their prescribed path, plies at rest until predicted.
     pred = traj.pos.clone().float()  # [T+1, N, 3]
@@ -101,12 +108,7 @@ def one_step_predictions(
     error is the single step's, with no error carried over: against :func:`rollout_plain`'s,
     it tells a wrong step from an error that compounds over the rollout.
     """
-    if device is None:
-        device = hierarchy.mesh(0).edge_index.device
-    device = torch.device(device)
-    traj = traj.to(device)
-    if hierarchy.mesh(0).edge_index.device != device:
-        hierarchy = hierarchy.clone().to(device)
+    traj, hierarchy, device = _on_device(traj, hierarchy, device)
     ply = traj.ply_mask  # [N]
     pred = traj.pos.clone().float()  # [T+1, N, 3]
     for t in range(1, traj.num_steps + 1):
