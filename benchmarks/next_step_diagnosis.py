@@ -92,6 +92,7 @@ def diagnose(module: Any, items: list, restart: int, progress: bool = False) -> 
     between two rollouts of other noise draws (``noise_spread``: how random the predictor is).
     """
     surrogate = module.surrogate.eval()
+    bundle = surrogate.bundle_steps  # steps per call (temporal bundling)
     out: dict[str, list[np.ndarray]] = {"rollout": [], "one_step": [], "restart": []}
     if surrogate.diffusion_steps == 1:
         out |= {"rollout_zero_noise": [], "one_step_zero_noise": [], "noise_spread": []}
@@ -105,25 +106,35 @@ def diagnose(module: Any, items: list, restart: int, progress: bool = False) -> 
         generator = torch.Generator().manual_seed(item.index)
         predict = functools.partial(surrogate.predict_residual, generator=generator)
         ply = traj.ply_mask
-        rolled = rollout_plain(predict, traj, hierarchy, surrogate.contact)
-        one = one_step_predictions(predict, traj, hierarchy, surrogate.contact)
-        late = rollout_plain(predict, traj, hierarchy, surrogate.contact, start=restart)
+        rolled = rollout_plain(predict, traj, hierarchy, surrogate.contact, bundle_steps=bundle)
+        one = one_step_predictions(predict, traj, hierarchy, surrogate.contact, bundle_steps=bundle)
+        late = rollout_plain(predict, traj, hierarchy, surrogate.contact, start=restart, bundle_steps=bundle)
         out["rollout"].append(_squared(rolled, traj.pos, ply))
         out["one_step"].append(_squared(one, traj.pos, ply))
         out["restart"].append(_squared(late, traj.pos, ply))
         if surrogate.diffusion_steps == 1:
             zero = zero_noise_predictor(surrogate)
             out["rollout_zero_noise"].append(
-                _squared(rollout_plain(zero, traj, hierarchy, surrogate.contact), traj.pos, ply)
+                _squared(
+                    rollout_plain(zero, traj, hierarchy, surrogate.contact, bundle_steps=bundle),
+                    traj.pos,
+                    ply,
+                )
             )
             out["one_step_zero_noise"].append(
-                _squared(one_step_predictions(zero, traj, hierarchy, surrogate.contact), traj.pos, ply)
+                _squared(
+                    one_step_predictions(zero, traj, hierarchy, surrogate.contact, bundle_steps=bundle),
+                    traj.pos,
+                    ply,
+                )
             )
             other = functools.partial(
                 surrogate.predict_residual, generator=torch.Generator().manual_seed(10**6 + item.index)
             )
             out["noise_spread"].append(
-                _squared(rollout_plain(other, traj, hierarchy, surrogate.contact), rolled, ply)
+                _squared(
+                    rollout_plain(other, traj, hierarchy, surrogate.contact, bundle_steps=bundle), rolled, ply
+                )
             )
     return {k: np.stack(v) for k, v in out.items()}
 

@@ -140,6 +140,7 @@ class AMPNCLI(LightningCLI):
             ("contact_k", "contact_k"),
             ("contact_mode", "contact_mode"),
             ("contact_positions", "contact_positions"),  # the next-step model's only
+            ("bundle_steps", "bundle_steps"),  # the next-step model's only
             ("num_levels", "max_levels"),
         ]:
             parser.link_arguments(f"model.init_args.{model_key}", f"data.{data_key}")

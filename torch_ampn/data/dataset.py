@@ -199,7 +199,9 @@ def set_window(
         data: The window's hierarchy (a shallow copy, or a batch).
         pos: :math:`x^{t-1}` ``[N, 3]``.
         prev_disp: :math:`x^{t-1} - x^{t-2}` ``[N, 3]``.
-        next_disp: :math:`x^t - x^{t-1}` ``[N, 3]``: the target, and on tool nodes the prescribed motion.
+        next_disp: :math:`x^t - x^{t-1}` ``[N, 3]``: the target, and on tool nodes the prescribed
+            motion; a bundled window (:func:`step_sample`'s ``bundle_steps`` ``B``) passes the
+            offsets of the next ``B`` steps, ``[N, 3 B]``.
         ply_mask: ``BoolTensor[N]``: ply nodes (predicted); the others are tools.
         gripper_pos: Gripper positions at :math:`t-1` ``[B, G, 3]``.
         gripper_force: Gripper force vectors at :math:`t-1` ``[B, G, 3]``.
@@ -221,8 +223,15 @@ def set_window(
     return data
 
 
-def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> HierarchicalData:
+def step_sample(
+    traj: Trajectory, t: int, hierarchy: HierarchicalData, bundle_steps: int = 1
+) -> HierarchicalData:
     r"""The training window ``(t-1, t)`` of ``traj`` on ``hierarchy`` (which is not modified).
+
+    With ``bundle_steps`` :math:`B > 1` (temporal bundling: one call predicts the next ``B``
+    saved steps), ``bc_disp`` and ``target`` are ``[N, 3 B]``: the offsets
+    :math:`x^{t-1+k} - x^{t-1}` for :math:`k = 1 .. B`, column block ``k - 1``; steps past the
+    trajectory's last repeat its last state (so the offsets stay constant there).
 
     Fine level (``l0``) fields, ``N`` nodes:
 
@@ -232,8 +241,9 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
       ``t < 3``), which with ``prev_disp`` and the ``prev_gripper_*`` fields makes the
       window ``(t-2, t-1)`` (the pushforward training of
       :class:`~torch_ampn.training.NextStepLightningModule`);
-    * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies;
-    * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}`;
+    * ``bc_disp`` ``[N, 3]``: prescribed tool motion :math:`x^t - x^{t-1}` on tool nodes, zero on plies
+      (``[N, 3 B]`` when bundled);
+    * ``target`` ``[N, 3]``: the residual :math:`\Delta u^t = x^t - x^{t-1}` (``[N, 3 B]`` when bundled);
     * ``fiber`` ``[N, 3]``, ``ply_mask`` ``[N]``, and ``node_type``/``component`` on every level;
     * where ``traj.prior`` is set: ``prior_pos``, ``prior_next`` and ``prior_before`` ``[N, 3]``,
       the prior's positions :math:`p^{t-1}`, :math:`p^t` and :math:`p^{\max(t-2, 0)}`.
@@ -244,14 +254,18 @@ def step_sample(traj: Trajectory, t: int, hierarchy: HierarchicalData) -> Hierar
     """
     if not 1 <= t <= traj.num_steps:
         raise IndexError(f"step {t} out of range 1..{traj.num_steps}")
-    x_prev, x_next = traj.pos[t - 1], traj.pos[t]
+    if bundle_steps < 1:
+        raise ValueError(f"bundle_steps must be >= 1, got {bundle_steps}")
+    x_prev = traj.pos[t - 1]
+    ahead = [min(t - 1 + k, traj.num_steps) for k in range(1, bundle_steps + 1)]
+    next_disp = torch.cat([traj.pos[s] - x_prev for s in ahead], dim=-1)  # [N, 3 B]
     gripper_pos, gripper_force = traj.gripper_positions(), traj.gripper_force_vectors()  # [T+1, G, 3]
     prior = traj.prior  # [T+1, N, 3] or None
     data = set_window(
         copy.copy(hierarchy),
         pos=x_prev,
         prev_disp=x_prev - traj.pos[t - 2] if t >= 2 else torch.zeros_like(x_prev),
-        next_disp=x_next - x_prev,
+        next_disp=next_disp,
         ply_mask=traj.node_type == NodeType.PLY,
         gripper_pos=gripper_pos[t - 1][None],
         gripper_force=gripper_force[t - 1][None],
@@ -292,6 +306,7 @@ class StepDataset(torch.utils.data.Dataset):
             them (a batched sample is a new object anyway).
         max_cached_mb: Memory for loaded trajectories (see :class:`TrajectoryDataset`).
         priors: Priors of the trajectories (see :class:`TrajectoryDataset`).
+        bundle_steps: Steps every window's target spans (temporal bundling; see :func:`step_sample`).
     """
 
     def __init__(
@@ -305,7 +320,11 @@ class StepDataset(torch.utils.data.Dataset):
         cache_samples: bool = False,
         max_cached_mb: float | None = 2048.0,
         priors: Mapping[str, Tensor] | None = None,
+        bundle_steps: int = 1,
     ) -> None:
+        if bundle_steps < 1:
+            raise ValueError(f"bundle_steps must be >= 1, got {bundle_steps}")
+        self.bundle_steps = bundle_steps
         self.transform = transform
         self.cache_samples = cache_samples
         self._samples: dict[int, HierarchicalData] = {}
@@ -327,7 +346,7 @@ class StepDataset(torch.utils.data.Dataset):
 
     def sample(self, traj: Trajectory, t: int) -> HierarchicalData:
         """The sample of ``traj`` at step ``t`` (:func:`step_sample`), before the transform."""
-        return step_sample(traj, t, self.hierarchies(traj))
+        return step_sample(traj, t, self.hierarchies(traj), self.bundle_steps)
 
     def __getitem__(self, i: int) -> HierarchicalData:
         if i in self._samples:

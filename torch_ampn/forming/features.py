@@ -79,13 +79,18 @@ def num_fine_node_features(
     fiber_channels: int = 3,
     component_encoding: str = "onehot",
     prior: bool = False,
+    bundle_steps: int = 1,
 ) -> int:
-    """Number of columns of :func:`fine_node_features` (without the noise input)."""
+    """Number of columns of :func:`fine_node_features` (without the noise input).
+
+    ``bundle_steps`` ``B``: the prescribed tool motion has ``3 B`` columns (its offsets over
+    the ``B`` steps a bundled model predicts at once).
+    """
     return (
         (PRIOR_FEATURES if prior else 0)
         + NodeType.count()
         + 3  # previous residual
-        + 3  # prescribed tool motion
+        + 3 * bundle_steps  # prescribed tool motion
         + fiber_channels
         + num_component_features(num_components, component_encoding)
         + GRIPPER_FEATURES_PER_GRIPPER * num_grippers
@@ -248,7 +253,8 @@ def fine_node_features(
     Args:
         node_type: :class:`~torch_ampn.data.NodeType` of every node, ``LongTensor[N]``.
         prev_disp: Previous residual :math:`\Delta u^{t-1}`, ``[N, 3]``.
-        bc_disp: Prescribed tool motion :math:`\Delta u^t_{BC}` of this step, ``[N, 3]`` (zero on plies).
+        bc_disp: Prescribed tool motion :math:`\Delta u^t_{BC}` of this step, ``[N, 3]`` (zero on plies;
+            ``[N, 3 B]`` for a model that predicts ``B`` steps at once).
         fiber: Fiber direction ``[N, 3]`` (unit vector, zero on tools); any width ``[N, F]`` is accepted.
         component: Component id ``LongTensor[N]`` in ``0 .. num_components - 1``.
         num_components: Number of components ``C`` (width of the component one-hot).
@@ -436,7 +442,11 @@ def hierarchical_features(
 
 
 def ampn_channels(
-    num_components: int, num_grippers: int, component_encoding: str = "onehot", prior: bool = False
+    num_components: int,
+    num_grippers: int,
+    component_encoding: str = "onehot",
+    prior: bool = False,
+    bundle_steps: int = 1,
 ) -> dict[str, Any]:
     """The input sizes of a :class:`~torch_ampn.nn.RobinAMPN` for these features: ``RobinAMPN(**sizes)``.
 
@@ -445,7 +455,11 @@ def ampn_channels(
     """
     return {
         "fine_in_channels": num_fine_node_features(
-            num_components, num_grippers, component_encoding=component_encoding, prior=prior
+            num_components,
+            num_grippers,
+            component_encoding=component_encoding,
+            prior=prior,
+            bundle_steps=bundle_steps,
         ),
         "coarse_in_channels": num_coarse_node_features(),
         "edge_channels": {rel: num_edge_features(rel) for rel in RELATIONS},

@@ -82,6 +82,13 @@ class AMPNSurrogate(ModelFile, nn.Module):
             ``[N_0, 3]``). The AMPN's own arguments (``**network``) are then unused. Rollouts of
             such a network take the plain path (:func:`~torch_ampn.rollout.rollout`).
         network_options: Keyword arguments of ``network_class``.
+        bundle_steps: Temporal bundling (Brandstetter et al., 2022): one call predicts the next
+            ``B`` saved steps, so a rollout of ``T`` steps takes ``ceil(T / B)`` calls and its
+            errors compound ``B`` times less often. The target is then the offsets
+            :math:`x^{t-1+k} - x^{t-1}`, ``k = 1 .. B`` (``[N, 3 B]``), and the prescribed tool
+            motion of the ``B`` steps is an input (:func:`~torch_ampn.data.step_sample`). 1 (the
+            paper): the next step only. Not with ``predict_change``, ``prior_features`` or
+            ``network_class``; rollouts take the plain path.
         **network: Further arguments of :class:`~torch_ampn.nn.RobinAMPN`: ``hidden_channels``,
             ``mlp_channels``, the layer counts of the five stacks and ``aggr`` (the paper's values
             by default). The noise input and the diffusion-step encoding are set here.
@@ -107,6 +114,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
         prior_features: bool = False,
         network_class: str | None = None,
         network_options: dict[str, Any] | None = None,
+        bundle_steps: int = 1,
         **network: Any,
     ) -> None:
         super().__init__()
@@ -125,6 +133,8 @@ class AMPNSurrogate(ModelFile, nn.Module):
             raise ValueError(f"num_components must be >= 1, got {num_components}")
         if diffusion_steps < 1:
             raise ValueError(f"diffusion_steps must be >= 1, got {diffusion_steps}")
+        check_bundle_steps(bundle_steps, predict_change, prior_features, network_class)
+        self.bundle_steps = bundle_steps
         self.num_components = num_components
         self.num_grippers = num_grippers
         self.num_levels = num_levels
@@ -143,18 +153,23 @@ class AMPNSurrogate(ModelFile, nn.Module):
             positions=contact_positions,
         )
         sizes = ampn_channels(
-            num_components, num_grippers, component_encoding=component_encoding, prior=self.prior_features
+            num_components,
+            num_grippers,
+            component_encoding=component_encoding,
+            prior=self.prior_features,
+            bundle_steps=bundle_steps,
         )
         fine_in = sizes["fine_in_channels"]
         self.network_class = network_class
+        out = 3 * bundle_steps  # the residual, or the offsets of the B bundled steps
         common = {
             "num_levels": num_levels,
-            "noise_channels": 3,  # ROBIN's noise input: the noisy target (K = 1: pure N(0, 1) noise)
+            "noise_channels": out,  # ROBIN's noise input: the noisy target (K = 1: pure N(0, 1) noise)
             "num_step_frequencies": 4 if diffusion_steps > 1 else 0,
             "max_step": max(diffusion_steps - 1, 1),
         }
         if network_class is None:
-            model = RobinAMPN(**sizes, **common, **network)
+            model = RobinAMPN(**sizes, **common, out_channels=out, **network)
         else:
             model = import_network_class(network_class)(fine_in, **common, **(network_options or {}))
         self.diffusion = DiffusionAMPN(model, diffusion_steps)
@@ -162,7 +177,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
             {"fine": Normalizer(fine_in), "coarse": Normalizer(num_coarse_node_features())}
         )
         self.edge_norm = nn.ModuleDict({rel: Normalizer(num_edge_features(rel)) for rel in RELATIONS})
-        self.target_norm = Normalizer(3, center=center_target)
+        self.target_norm = Normalizer(out, center=center_target)
         self.position_norm = Normalizer(3)
 
     @property
@@ -294,6 +309,8 @@ class AMPNSurrogate(ModelFile, nn.Module):
     def predict_residual(self, data: HierarchicalData, generator: torch.Generator | None = None) -> Tensor:
         r"""Predicted residual :math:`\Delta u^t` in mm of every ``l0`` node, ``[N_0, 3]`` (K-step sampling).
 
+        A bundled model (``bundle_steps`` ``B > 1``) returns the offsets
+        :math:`x^{t-1+k} - x^{t-1}` of the next ``B`` steps, ``[N_0, 3 B]``.
         Tool rows are whatever the network says; callers replace them by the prescribed motion.
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
@@ -343,8 +360,29 @@ class AMPNSurrogate(ModelFile, nn.Module):
             + (", predict_change=True" if self.predict_change else "")
             + (f", component_encoding={encoding!r}" if encoding != "onehot" else "")
             + (", prior_features=True" if self.prior_features else "")
+            + (f", bundle_steps={self.bundle_steps}" if self.bundle_steps > 1 else "")
             + (f", network_class={self.network_class!r}" if self.network_class else "")
         )
+
+
+def check_bundle_steps(
+    bundle_steps: int,
+    predict_change: bool = False,
+    prior_features: bool = False,
+    network_class: str | None = None,
+) -> None:
+    """One-line errors for a ``bundle_steps`` an :class:`AMPNSurrogate` cannot have."""
+    if not isinstance(bundle_steps, int) or bundle_steps < 1:
+        raise ValueError(f"bundle_steps must be an integer >= 1, got {bundle_steps!r}")
+    if bundle_steps == 1:
+        return
+    for name, used in (
+        ("predict_change", predict_change),
+        ("prior_features", prior_features),
+        ("network_class", network_class is not None),
+    ):
+        if used:
+            raise ValueError(f"bundle_steps > 1 does not work with {name}: use one or the other")
 
 
 def import_network_class(path: str) -> type[nn.Module]:

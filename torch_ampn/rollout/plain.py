@@ -50,6 +50,7 @@ def rollout_plain(
     device: torch.device | str | None = None,
     progress: bool = False,
     start: int = 0,
+    bundle_steps: int = 1,
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state, window by window.
 
@@ -57,19 +58,24 @@ def rollout_plain(
     the arguments; returns the predicted positions ``[num_steps + 1, N, 3]`` (float32, CPU).
     ``start``: roll out from the true state at this step instead (rows ``0 .. start`` are the
     trajectory's own): how the error grows from a correct state halfway through the forming.
+    ``bundle_steps`` ``B``: the predictor returns the offsets of the next ``B`` steps from the
+    current state, ``[N, 3 B]`` (a bundled :class:`~torch_ampn.forming.AMPNSurrogate`), and
+    the rollout moves ``B`` steps per call.
     """
     steps = traj.num_steps if num_steps is None else num_steps
     if not 1 <= steps <= traj.num_steps:
         raise ValueError(f"num_steps must be in 1..{traj.num_steps}, got {steps}")
     if not 0 <= start < steps:
         raise ValueError(f"start must be in 0..{steps - 1}, got {start}")
+    if bundle_steps < 1:
+        raise ValueError(f"bundle_steps must be >= 1, got {bundle_steps}")
     traj, hierarchy, device = _on_device(traj, hierarchy, device)
     ply = traj.ply_mask  # [N]
     # Prediction buffer: tools on their prescribed path, plies at rest until predicted.
     pred = traj.pos.clone().float()  # [T+1, N, 3]
     pred[start + 1 :, ply] = pred[start, ply]
     state = dataclasses.replace(traj, pos=pred)
-    iterator = range(start + 1, steps + 1)
+    iterator = range(start + 1, steps + 1, bundle_steps)
     if progress:
         from tqdm.auto import tqdm
 
@@ -80,7 +86,7 @@ def rollout_plain(
         edges: list[Tensor] | None = None
         for t in iterator:
             threads.step()
-            data = step_sample(state, t, hierarchy)
+            data = step_sample(state, t, hierarchy, bundle_steps)
             if edges is not None:
                 for level, edge_index in enumerate(edges):
                     data.contact(level).edge_index = edge_index
@@ -88,9 +94,19 @@ def rollout_plain(
                 data = contact(data)
                 if static_contact:
                     edges = [data.contact(level).edge_index for level in range(data.num_levels)]
-            du = predictor(data).float()  # [N, 3]
-            pred[t] = next_positions(ply, pred[t - 1], du, pred[t])
+            du = predictor(data).float()  # [N, 3 B]
+            _check_width(du, bundle_steps)
+            for k in range(min(bundle_steps, steps + 1 - t)):  # offsets from x^{t-1}
+                pred[t + k] = next_positions(ply, pred[t - 1], du[:, 3 * k : 3 * k + 3], pred[t + k])
     return pred[: steps + 1].cpu()
+
+
+def _check_width(du: Tensor, bundle_steps: int) -> None:
+    if du.size(-1) != 3 * bundle_steps:
+        raise ValueError(
+            f"the predictor returned {du.size(-1)} columns per node; bundle_steps={bundle_steps} "
+            f"needs {3 * bundle_steps}"
+        )
 
 
 @torch.no_grad()
@@ -100,22 +116,30 @@ def one_step_predictions(
     hierarchy: HierarchicalData,
     contact: Transform | None = None,
     device: torch.device | str | None = None,
+    bundle_steps: int = 1,
 ) -> Tensor:
     """Teacher-forced predictions: each step ``t`` predicted from the *true* states ``t-1, t-2``.
 
     Row ``t`` of the result ``[T+1, N, 3]`` (float32, CPU) is the true state ``t - 1`` moved by
     the predicted residual on ply nodes (tools on their path; row 0 the initial state). Its
     error is the single step's, with no error carried over: against :func:`rollout_plain`'s,
-    it tells a wrong step from an error that compounds over the rollout.
+    it tells a wrong step from an error that compounds over the rollout. A bundled predictor
+    (``bundle_steps`` ``B``) is called at ``t = 1, 1 + B, ...`` from the true state before,
+    and fills the ``B`` rows of its call: the error of one call, none carried between calls.
     """
     traj, hierarchy, device = _on_device(traj, hierarchy, device)
     ply = traj.ply_mask  # [N]
     pred = traj.pos.clone().float()  # [T+1, N, 3]
-    for t in range(1, traj.num_steps + 1):
-        data = step_sample(traj, t, hierarchy)
+    steps = traj.num_steps
+    for t in range(1, steps + 1, bundle_steps):
+        data = step_sample(traj, t, hierarchy, bundle_steps)
         if contact is not None:
             data = contact(data)
-        pred[t] = next_positions(ply, traj.pos[t - 1].float(), predictor(data).float(), traj.pos[t].float())
+        du = predictor(data).float()  # [N, 3 B]
+        _check_width(du, bundle_steps)
+        before = traj.pos[t - 1].float()
+        for k in range(min(bundle_steps, steps + 1 - t)):
+            pred[t + k] = next_positions(ply, before, du[:, 3 * k : 3 * k + 3], traj.pos[t + k].float())
     return pred.cpu()
 
 

@@ -98,6 +98,7 @@ def rollout_surrogate(
             num_steps=num_steps,
             device=device,
             progress=progress,
+            bundle_steps=surrogate.bundle_steps,
         )
         for traj, g in zip(trajs, gens, strict=True)
     ]
@@ -116,6 +117,7 @@ def rollout(
     fast: bool = False,
     generator: torch.Generator | None = None,
     compile: bool = True,
+    bundle_steps: int | None = None,
 ) -> Tensor:
     """Roll ``predictor`` out over ``traj`` from its initial state.
 
@@ -143,6 +145,9 @@ def rollout(
             have no fast path (plain-radius contact) it warns and takes the plain path.
         generator: Noise generator of the fast path (the plain path's predictor brings its own).
         compile: Compile the fast path (``torch.compile``; it warns and runs eagerly where that fails).
+        bundle_steps: Steps per call of the plain path's ``predictor`` (``[N, 3 B]`` offsets; see
+            :func:`~torch_ampn.rollout.rollout_plain`); ``None``: a bundled surrogate's (or its
+            method's) own ``bundle_steps``, else 1.
 
     Returns:
         Predicted positions ``[num_steps + 1, N, 3]`` (float32, on the CPU); row 0 is the initial state.
@@ -150,7 +155,10 @@ def rollout(
     if isinstance(predictor, DirectSurrogate):
         return predict_direct(predictor, [traj], hierarchy, device=device, num_steps=num_steps)[0]
     if not fast:
-        return rollout_plain(predictor, traj, hierarchy, contact, num_steps, device, progress)
+        bundle = _bundle_steps(predictor) if bundle_steps is None else bundle_steps
+        return rollout_plain(
+            predictor, traj, hierarchy, contact, num_steps, device, progress, bundle_steps=bundle
+        )
     if not isinstance(predictor, AMPNSurrogate):
         raise TypeError(
             f"rollout(fast=True) needs an AMPNSurrogate as predictor, got {type(predictor).__name__}"
@@ -208,3 +216,9 @@ def rollout_settings(
         device=device,
         progress=progress,
     )
+
+
+def _bundle_steps(predictor: Predictor) -> int:
+    """Steps per call of ``predictor``: a (bound method of a) bundled surrogate's ``bundle_steps``, else 1."""
+    owner = getattr(getattr(predictor, "func", predictor), "__self__", predictor)  # partial, bound method
+    return int(getattr(owner, "bundle_steps", 1))

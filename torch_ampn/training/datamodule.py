@@ -121,6 +121,8 @@ class AMPNDataModule(L.LightningDataModule):
         mode: ``"next_step"``: training windows; ``"direct"``: one sample per training trajectory
             (:class:`~torch_ampn.data.DirectDataset`, kept in memory) for a direct model (linked
             to the model's ``mode`` by the CLI).
+        bundle_steps: Steps a training window's target spans (a next-step model's temporal
+            bundling, :func:`~torch_ampn.data.step_sample`; linked to the model's by the CLI).
     """
 
     def __init__(
@@ -156,10 +158,13 @@ class AMPNDataModule(L.LightningDataModule):
         prior_folds: int = 5,
         make_dataset: str | Callable[..., Any] | None = None,
         mode: str = "next_step",
+        bundle_steps: int = 1,
     ) -> None:
         super().__init__()
         if mode not in ("next_step", "direct"):
             raise ValueError(f"data.mode must be 'next_step' or 'direct', got {mode!r}")
+        if bundle_steps < 1:
+            raise ValueError(f"data.bundle_steps must be >= 1, got {bundle_steps}")
         if predict_batch_size < 1:
             raise ValueError(f"data.predict_batch_size must be >= 1, got {predict_batch_size}")
         # a function object is not a checkpoint's plain value: only its import path is kept
@@ -269,6 +274,7 @@ class AMPNDataModule(L.LightningDataModule):
                 cache_samples=hp.cache_windows or hp.get("mode") == "direct",  # one per trajectory
                 max_cached_mb=hp.trajectory_cache_mb,
                 priors=self._priors("train"),
+                **({} if hp.get("mode") == "direct" else {"bundle_steps": hp.get("bundle_steps", 1)}),
             )
         if stage in ("fit", "validate"):
             self._splits["val"] = self._rollout_split("val", hp.limit_val_trajectories)
@@ -476,6 +482,12 @@ class AMPNDataModule(L.LightningDataModule):
 
     def check_model(self, surrogate: torch.nn.Module) -> None:
         """Raise a clear error if the model's component/gripper counts or prior do not match the data."""
+        bundle = getattr(surrogate, "bundle_steps", 1)
+        if bundle != self.hparams.get("bundle_steps", 1) and self.hparams.get("mode") != "direct":
+            raise ValueError(
+                f"model.bundle_steps={bundle} but data.bundle_steps={self.hparams.get('bundle_steps', 1)}: "
+                "set both (the torch-ampn CLI links them)"
+            )
         wants_prior = bool(getattr(surrogate, "prior_features", False))
         if wants_prior != (self.hparams.get("prior") is not None):
             raise ValueError(

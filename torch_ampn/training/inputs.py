@@ -43,8 +43,8 @@ def add_training_noise(
     if position_noise > 0:
         eps = ply * (position_noise * sigma_x) * torch.randn_like(fine.pos)  # [N, 3]
         fine.pos = fine.pos + eps
-        if correct_target:
-            fine.target = fine.target - eps
+        if correct_target:  # every bundled offset starts from the perturbed x^{t-1}
+            fine.target = fine.target - eps.repeat(1, fine.target.size(-1) // 3)
         if correlated_noise:
             fine.prev_disp = fine.prev_disp + eps
     if residual_noise > 0:

@@ -23,6 +23,7 @@ SURROGATE_ARGUMENTS = (
     "prior_features",
     "network_class",
     "network_options",
+    "bundle_steps",
 )
 
 
@@ -52,6 +53,9 @@ class NextStepLightningModule(SurrogateLightningModule):
             peer's model behind an adapter; see :class:`~torch_ampn.forming.AMPNSurrogate`); the AMPN's
             layer arguments are then unused, and rollouts take the plain path.
         network_options: Keyword arguments of ``network_class``.
+        bundle_steps: Temporal bundling: one call predicts the next ``B`` saved steps (see
+            :class:`~torch_ampn.forming.AMPNSurrogate`); the data module's ``bundle_steps`` must
+            match (the CLI links them). Not with ``pushforward``; rollouts take the plain path.
         position_noise: Training noise on ply positions, in units of :math:`\sigma_x` (paper: 1e-5).
         residual_noise: Training noise on the previous residual, in units of :math:`\sigma_x` (paper: 1e-6).
         correct_target: Subtract the position noise from the target residual, so that the model learns
@@ -95,6 +99,7 @@ class NextStepLightningModule(SurrogateLightningModule):
         prior_features: bool = False,
         network_class: str | None = None,
         network_options: dict[str, Any] | None = None,
+        bundle_steps: int = 1,
         position_noise: float = 1e-5,
         residual_noise: float = 1e-6,
         correct_target: bool = True,
@@ -107,6 +112,8 @@ class NextStepLightningModule(SurrogateLightningModule):
     ) -> None:
         if not 0.0 <= pushforward <= 1.0:
             raise ValueError(f"pushforward is a probability in [0, 1], got {pushforward}")
+        if pushforward > 0 and bundle_steps > 1:
+            raise ValueError("pushforward > 0 does not work with bundle_steps > 1: set pushforward: 0")
         self.check_arguments(kwargs)
         super().__init__(**kwargs)
 
