@@ -83,3 +83,31 @@ def test_windows_carry_the_prior_and_the_model_reads_it():
     torch.testing.assert_close(x_prior[:, -3:], traj.pos[2] - traj.pos[1])  # the prior's step
     with pytest.raises(ValueError, match="has no prior"):
         with_prior._raw_features(step_sample(dataclasses.replace(traj, prior=None), 2, h))
+
+
+def test_a_prior_base_model_learns_the_departure_from_the_priors_step_and_adds_the_step_back():
+    """With the truth as prior, the departure is 0: a network that outputs its normalised zero rolls the
+    truth out exactly; the same output without prior_base gives the mean training step instead."""
+    from torch_ampn.rollout import rollout
+
+    traj = _lifted(1.0, 10.0)
+    traj.pos[2:, PLY] += torch.tensor([0.0, 0.5, 0.0])  # steps of two sizes: the mean step is not the truth
+    traj.prior = traj.pos.clone()
+    h = HierarchyCache(None, max_levels=2, min_coarse_nodes=4)(traj)
+    common = dict(num_components=traj.num_components, num_grippers=1, num_levels=2, hidden_channels=8,
+                  prior_features=True)  # fmt: skip
+    based, plain = AMPNSurrogate(**common, prior_base=True), AMPNSurrogate(**common)
+    windows = [step_sample(traj, t, h) for t in range(1, traj.num_steps + 1)]
+    for s in (based, plain):
+        for w in windows:
+            s.accumulate_statistics(w)
+        s.freeze_statistics()
+        s.diffusion.sample = lambda x_dict, *a, **k: torch.zeros(x_dict["l0"].size(0), 3)  # normalised 0
+    torch.testing.assert_close(based.target_norm.mean.float(), torch.zeros(3))  # the departure's mean: none
+    torch.testing.assert_close(rollout(based.predict_residual, traj, h), traj.pos, atol=1e-5, rtol=0)
+    steps = torch.stack([w["l0"].target[PLY] for w in windows])  # [T, n, 3] true steps of the plies
+    torch.testing.assert_close(plain.target_norm.mean.float(), steps.reshape(-1, 3).mean(0))
+    off = rollout(plain.predict_residual, traj, h)
+    assert (off - traj.pos).abs().max() > 0.1  # the mean step, not the truth
+    with pytest.raises(ValueError, match="prior_base needs prior_features"):
+        AMPNSurrogate(num_levels=2, hidden_channels=8, prior_base=True)

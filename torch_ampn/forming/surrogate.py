@@ -71,6 +71,12 @@ class AMPNSurrogate(ModelFile, nn.Module):
             (:func:`~torch_ampn.forming.features.prior_features`: 6 more fine-node columns), so that
             the network learns a correction of the prior; the windows must then carry it
             (:attr:`~torch_ampn.data.Trajectory.prior`; rollouts read it from there too).
+        prior_base: With ``prior_features``: the network learns the departure of each step from
+            the prior's step, :math:`\Delta u^t - (p^t - p^{t-1})` (normalised with its own
+            statistics), and the prior's step is added back, as a direct model's
+            ``base="prior"`` does; with a setting-independent prior (the mean training
+            trajectory) the network's whole target is then what the settings change. ``False``:
+            the prior is an input only. Rollouts take the plain path.
         network_class: Another network in place of the AMPN, as ``"package.module:Class"`` (e.g.
             a peer's model behind an adapter, ``benchmarks/peers.py``). It is built as
             ``Class(fine_in_channels, num_levels=..., noise_channels=3, num_step_frequencies=...,
@@ -112,6 +118,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
         coarse_loss_weight: float = 0.0,
         component_encoding: str = "onehot",
         prior_features: bool = False,
+        prior_base: bool = False,
         network_class: str | None = None,
         network_options: dict[str, Any] | None = None,
         bundle_steps: int = 1,
@@ -134,6 +141,13 @@ class AMPNSurrogate(ModelFile, nn.Module):
         if diffusion_steps < 1:
             raise ValueError(f"diffusion_steps must be >= 1, got {diffusion_steps}")
         check_bundle_steps(bundle_steps, predict_change, prior_features, network_class)
+        if prior_base and not prior_features:
+            raise ValueError(
+                "prior_base needs prior_features (and a data.prior): the prior's step is the base"
+            )
+        if prior_base and predict_change:
+            raise ValueError("prior_base and predict_change are two bases of the step: use one")
+        self.prior_base = bool(prior_base)
         self.bundle_steps = bundle_steps
         self.num_components = num_components
         self.num_grippers = num_grippers
@@ -270,8 +284,14 @@ class AMPNSurrogate(ModelFile, nn.Module):
 
     # ---- training and inference -------------------------------------------------------
     def _network_target(self, fine) -> Tensor:
-        """What the network learns, in mm ``[N_0, 3]``: the residual, or its change (``predict_change``)."""
-        return fine.target - fine.prev_disp if self.predict_change else fine.target
+        """What the network learns, in mm ``[N_0, 3]``: the residual, less the base if it has one."""
+        return fine.target - self._base(fine) if self.predict_change or self.prior_base else fine.target
+
+    def _base(self, fine) -> Tensor:
+        """The step's base ``[N_0, 3]`` mm: the prior's step (``prior_base``) or the previous residual."""
+        if self.prior_base:
+            return fine.prior_next - fine.prior_pos
+        return fine.prev_disp
 
     def loss(
         self,
@@ -314,8 +334,10 @@ class AMPNSurrogate(ModelFile, nn.Module):
         Tool rows are whatever the network says; callers replace them by the prescribed motion.
         """
         x_dict, index_dict, e_dict = self.normalized_features(data)
+        fine = data["l0"]
+        base = self._base(fine) if self.prior_base else None
         return self.residual_from_features(
-            x_dict, index_dict, e_dict, data["l0"].prev_disp, generator=generator
+            x_dict, index_dict, e_dict, fine.prev_disp, generator=generator, base=base
         )
 
     def residual_from_features(
@@ -328,6 +350,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
         generator: torch.Generator | None = None,
         network: nn.Module | None = None,
         draw: Callable[[], Tensor] | None = None,
+        base: Tensor | None = None,
     ) -> Tensor:
         r""":meth:`predict_residual` from normalised features (:meth:`normalized_features`), ``[N_0, 3]`` mm.
 
@@ -341,6 +364,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
             generator: Random generator of the sampling noise.
             network: Runs in place of the AMPN (e.g. compiled).
             draw: Noise source in place of ``generator`` (see :meth:`DiffusionAMPN.sample`).
+            base: The prior's step :math:`p^t - p^{t-1}` ``[N_0, 3]`` (needed with ``prior_base``).
         """
         out = self.diffusion.sample(
             x_dict, edge_index_dict, edge_attr_dict, contact_mask_dict,
@@ -349,6 +373,10 @@ class AMPNSurrogate(ModelFile, nn.Module):
         residual = self.target_norm.denormalize(out.float())
         if self.predict_change:
             residual = residual + prev_disp.to(residual.dtype)
+        if self.prior_base:
+            if base is None:
+                raise ValueError("a prior_base model needs the prior's step: pass base")
+            residual = residual + base.to(residual.dtype)
         return residual
 
     def extra_repr(self) -> str:
@@ -360,6 +388,7 @@ class AMPNSurrogate(ModelFile, nn.Module):
             + (", predict_change=True" if self.predict_change else "")
             + (f", component_encoding={encoding!r}" if encoding != "onehot" else "")
             + (", prior_features=True" if self.prior_features else "")
+            + (", prior_base=True" if self.prior_base else "")
             + (f", bundle_steps={self.bundle_steps}" if self.bundle_steps > 1 else "")
             + (f", network_class={self.network_class!r}" if self.network_class else "")
         )

@@ -66,6 +66,8 @@ def fast_path_supported(surrogate: AMPNSurrogate) -> str | None:
         return f"contact mode {surrogate.contact.mode!r} has no fixed-size contact tables"
     if getattr(surrogate, "network_class", None) is not None:
         return f"network_class {surrogate.network_class!r} is not an AMPN"
+    if getattr(surrogate, "prior_base", False):
+        return "prior_base (the prior's step as the base of the prediction)"
     if getattr(surrogate, "bundle_steps", 1) > 1:
         return f"bundle_steps={surrogate.bundle_steps} (a model that predicts several steps per call)"
     return None

@@ -21,6 +21,7 @@ SURROGATE_ARGUMENTS = (
     "huber_delta",
     "coarse_loss_weight",
     "prior_features",
+    "prior_base",
     "network_class",
     "network_options",
     "bundle_steps",
@@ -48,6 +49,9 @@ class NextStepLightningModule(SurrogateLightningModule):
         coarse_loss_weight: Weight of the multilevel loss's coarse terms (0: the paper's MSE).
         prior_features: Take a prior trajectory (the data module's ``prior``, e.g. POD + GP) as
             input and learn its correction (:func:`~torch_ampn.forming.features.prior_features`);
+            rollouts then take the plain path.
+        prior_base: With ``prior_features``: learn the departure of each step from the prior's
+            step and add the prior's step back (see :class:`~torch_ampn.forming.AMPNSurrogate`);
             rollouts then take the plain path.
         network_class: Another network in place of the AMPN (``"package.module:Class"``, e.g. a
             peer's model behind an adapter; see :class:`~torch_ampn.forming.AMPNSurrogate`); the AMPN's
@@ -97,6 +101,7 @@ class NextStepLightningModule(SurrogateLightningModule):
         huber_delta: float | None = None,
         coarse_loss_weight: float = 0.0,
         prior_features: bool = False,
+        prior_base: bool = False,
         network_class: str | None = None,
         network_options: dict[str, Any] | None = None,
         bundle_steps: int = 1,
