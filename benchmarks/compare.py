@@ -143,6 +143,18 @@ def _set(config: dict, dotted: str, value: Any) -> None:
     (model_args(config) if section == "model" else config.setdefault(section, {}))[key] = value
 
 
+def validation_interval(steps: int, interval: int) -> int:
+    """The largest divisor of ``steps`` that is at most ``interval``: validations end at the last step.
+
+    ``best.ckpt`` is written at validations only, so a fit of 3,000 steps that validates every
+    2,000 would be tested with its step-2,000 weights (the 3,000-step cells before 2026-12-07 were).
+    """
+    count = -(-steps // max(1, min(interval, steps)))  # validations: at least ceil(steps / interval)
+    while steps % count:
+        count += 1
+    return steps // count
+
+
 def cell_config(
     base: dict, changes: dict[str, Any], seed: int, steps: int, cell_dir: Path, args: argparse.Namespace
 ) -> dict:
@@ -154,7 +166,7 @@ def cell_config(
     trainer = config.setdefault("trainer", {})
     config["seed_everything"] = seed
     trainer["max_steps"] = steps
-    trainer["val_check_interval"] = min(int(trainer.get("val_check_interval", steps)), steps)
+    trainer["val_check_interval"] = validation_interval(steps, int(trainer.get("val_check_interval", steps)))
     trainer["accelerator"] = "gpu" if args.device == "cuda" else args.device
     trainer["default_root_dir"] = str(cell_dir)
     trainer["enable_progress_bar"] = args.progress

@@ -195,3 +195,15 @@ def test_cells_keep_the_best_and_the_last_step(tmp_path):
     assert {e["class_path"] for e in entries} == {"lightning.pytorch.callbacks.ModelCheckpoint"}
     checkpoints = [ModelCheckpoint(**e["init_args"]) for e in entries]
     assert checkpoint_steps(checkpoints, tmp_path) == (2, 6)
+
+
+@pytest.mark.parametrize(
+    ("steps", "interval", "expected"),
+    [(3000, 2000, 1500), (1000, 2000, 1000), (10000, 2000, 2000), (12000, 2000, 2000), (7, 3, 1), (6, 4, 3)],
+)
+def test_the_cells_validate_at_their_last_step(steps, interval, expected):
+    """best.ckpt is written at validations: the last one must be the fit's last step (a 3,000-step cell
+    validated every 2,000 was tested with its step-2,000 weights), at least as often as asked."""
+    compare = _load_compare()
+    got = compare.validation_interval(steps, interval)
+    assert got == expected and steps % got == 0 and got <= interval
