@@ -94,19 +94,26 @@ def rollout_plain(
                 data = contact(data)
                 if static_contact:
                     edges = [data.contact(level).edge_index for level in range(data.num_levels)]
-            du = predictor(data).float()  # [N, 3 B]
-            _check_width(du, bundle_steps)
-            for k in range(min(bundle_steps, steps + 1 - t)):  # offsets from x^{t-1}
-                pred[t + k] = next_positions(ply, pred[t - 1], du[:, 3 * k : 3 * k + 3], pred[t + k])
+            _place_call(pred, t, steps, ply, pred[t - 1], predictor(data), bundle_steps)
     return pred[: steps + 1].cpu()
 
 
-def _check_width(du: Tensor, bundle_steps: int) -> None:
+def _place_call(
+    pred: Tensor, t: int, steps: int, ply: Tensor, before: Tensor, du: Tensor, bundle_steps: int
+) -> None:
+    """Write one call's ``B`` steps into ``pred`` ``[T+1, N, 3]``: rows ``t .. t + B - 1``, at most ``steps``.
+
+    ``du`` ``[N, 3 B]`` holds the offsets from ``before`` (:math:`x^{t-1}`) on ply nodes; tool
+    rows keep what ``pred`` holds (their prescribed path).
+    """
     if du.size(-1) != 3 * bundle_steps:
         raise ValueError(
             f"the predictor returned {du.size(-1)} columns per node; bundle_steps={bundle_steps} "
             f"needs {3 * bundle_steps}"
         )
+    du = du.float()
+    for k in range(min(bundle_steps, steps + 1 - t)):
+        pred[t + k] = next_positions(ply, before, du[:, 3 * k : 3 * k + 3], pred[t + k])
 
 
 @torch.no_grad()
@@ -135,11 +142,7 @@ def one_step_predictions(
         data = step_sample(traj, t, hierarchy, bundle_steps)
         if contact is not None:
             data = contact(data)
-        du = predictor(data).float()  # [N, 3 B]
-        _check_width(du, bundle_steps)
-        before = traj.pos[t - 1].float()
-        for k in range(min(bundle_steps, steps + 1 - t)):
-            pred[t + k] = next_positions(ply, before, du[:, 3 * k : 3 * k + 3], traj.pos[t + k].float())
+        _place_call(pred, t, steps, ply, traj.pos[t - 1].float(), predictor(data), bundle_steps)
     return pred.cpu()
 
 

@@ -274,7 +274,7 @@ class AMPNDataModule(L.LightningDataModule):
                 cache_samples=hp.cache_windows or hp.get("mode") == "direct",  # one per trajectory
                 max_cached_mb=hp.trajectory_cache_mb,
                 priors=self._priors("train"),
-                **({} if hp.get("mode") == "direct" else {"bundle_steps": hp.get("bundle_steps", 1)}),
+                bundle_steps=hp.get("bundle_steps", 1),  # 1 for a direct model, whose samples ignore it
             )
         if stage in ("fit", "validate"):
             self._splits["val"] = self._rollout_split("val", hp.limit_val_trajectories)
@@ -483,7 +483,7 @@ class AMPNDataModule(L.LightningDataModule):
     def check_model(self, surrogate: torch.nn.Module) -> None:
         """Raise a clear error if the model's component/gripper counts or prior do not match the data."""
         bundle = getattr(surrogate, "bundle_steps", 1)
-        if bundle != self.hparams.get("bundle_steps", 1) and self.hparams.get("mode") != "direct":
+        if bundle != self.hparams.get("bundle_steps", 1):
             raise ValueError(
                 f"model.bundle_steps={bundle} but data.bundle_steps={self.hparams.get('bundle_steps', 1)}: "
                 "set both (the torch-ampn CLI links them)"
