@@ -18,6 +18,9 @@ export MPLBACKEND=Agg
 # --dist loadgroup: the tests of one xdist_group (e.g. those that share the run's one fit, or
 # compile the same graphs) run in one worker, in file order.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# the notebooks run smaller than their committed outputs (fewer meshes, steps and simulations):
+# they check that every cell runs; the tests check the numbers
+export AMPN_NOTEBOOK_QUICK="${AMPN_NOTEBOOK_QUICK:-1}"
 # notebook cells get 15 minutes (nbmake: 5): a loaded 2-core machine can slow them far beyond their ~10 s
 # --durations: the slowest tests, where the suite's time goes
 python -m pytest -n "${AMPN_TEST_WORKERS:-auto}" --dist loadgroup \
