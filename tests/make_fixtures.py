@@ -49,34 +49,34 @@ SMALL_MODEL: dict[str, Any] = dict(
 )
 
 
-def make_dataset(out: Path) -> None:
-    """Simulate the tiny dataset into ``out`` (an empty or missing folder)."""
+def make_dataset(out: Path, shard: tuple[int, int] | None = None) -> None:
+    """Simulate the tiny dataset into ``out`` (an empty or missing folder); ``shard``: one part of it."""
     from torch_ampn.sim import StampFormingConfig, generate_dataset
     from torch_ampn.testing import SMALL_SIMULATOR
 
     config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
-    generate_dataset(out, *SPLITS, config=config, workers=1, compile=False, progress=False)
+    generate_dataset(out, *SPLITS, config=config, workers=1, compile=False, progress=False, shard=shard)
 
 
-def make_family_dataset(out: Path) -> None:
+def make_family_dataset(out: Path, shard: tuple[int, int] | None = None) -> None:
     """Simulate the tiny family dataset (:data:`FAMILY`, :data:`FAMILY_SPLITS`) into ``out``."""
     from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset
     from torch_ampn.testing import SMALL_SIMULATOR
 
     config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
     family = PartFamily.from_dict(FAMILY)
-    options = dict(workers=1, compile=False, progress=False)
+    options = dict(workers=1, compile=False, progress=False, shard=shard)
     generate_dataset(out, *FAMILY_SPLITS, config=config, family=family, **options)
 
 
-def make_family_deep_dataset(out: Path) -> None:
+def make_family_deep_dataset(out: Path, shard: tuple[int, int] | None = None) -> None:
     """Simulate the deep domes of the tiny family (:data:`DEEP`, :data:`DEEP_SPLITS`) into ``out``."""
     from torch_ampn.sim import PartFamily, StampFormingConfig, generate_dataset
     from torch_ampn.testing import SMALL_SIMULATOR
 
     config = StampFormingConfig.from_dict(SMALL_SIMULATOR)
     family = PartFamily.from_dict({**PartFamily.from_dict(FAMILY).to_dict(), **DEEP})
-    options = dict(workers=1, compile=False, progress=False)
+    options = dict(workers=1, compile=False, progress=False, shard=shard)
     generate_dataset(out, *DEEP_SPLITS, config=config, family=family, **options)
 
 
