@@ -10,8 +10,9 @@ Each ``--cell LABEL=PATH[@STEPS]`` is one point of the series ``LABEL``: a cell 
 ``benchmarks/compare.py`` (its test RMSE, R² of the setting effect and fit seconds).
 ``@STEPS`` overrides the cell's step count, for cells tested with earlier weights than their last
 (before 2026-12-07, a 3,000-step cell was tested with its step-2,000 weights). A series of two
-points or more gets the power law ``RMSE = a steps^-c`` fitted to its last two points (log-log
-least squares over all points with ``--fit-all``), and the step count at which it would reach
+step counts or more (``--min-points``: two early points, one taken half way down a learning-rate
+schedule, extrapolate wildly) gets the power law ``RMSE = a steps^-c`` through its last two
+points (log-log least squares over all points with ``--fit-all``), and the step count at which it would reach
 the linear regression on the settings and the nearest training setting (the baselines in the
 cells' JSON, built from the same training trajectories). Prints a table, writes JSON and a plot
 (``--out`` with ``.png``).
@@ -68,10 +69,11 @@ def read_point(path: Path, steps: int | None) -> dict:
     }
 
 
-def power_law(points: list[dict], fit_all: bool = False) -> dict | None:
-    """``RMSE = a steps^-c`` through the last two points (or fitted to all); ``None`` below two."""
+def power_law(points: list[dict], fit_all: bool = False, min_points: int = 2) -> dict | None:
+    """``RMSE = a steps^-c`` through the last two points (or fitted to all); ``None`` below ``min_points``
+    step counts (at least two)."""
     pts = sorted(points, key=lambda p: p["steps"])
-    if len({p["steps"] for p in pts}) < 2:
+    if len({p["steps"] for p in pts}) < max(2, min_points):
         return None
     used = pts if fit_all else pts[-2:]
     x = np.log([p["steps"] for p in used])
@@ -93,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cell", type=parse_cell, action="append", required=True, help="LABEL=PATH[@STEPS]")
     parser.add_argument("--out", type=Path, required=True, help="JSON; the plot beside it (.png)")
     parser.add_argument("--fit-all", action="store_true", help="fit the power law to every point")
+    parser.add_argument(
+        "--min-points", type=int, default=3, help="step counts a series needs for a power law (default 3)"
+    )
     args = parser.parse_args(argv)
 
     series: dict[str, list[dict]] = {}
@@ -110,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---:|---:|---:|---:|")
     for label, points in series.items():
         points.sort(key=lambda p: (p["steps"], p["seed"] or 0))
-        law = power_law(points, args.fit_all)
+        law = power_law(points, args.fit_all, args.min_points)
         result["series"][label] = {
             "points": [{k: v for k, v in p.items() if k != "baselines"} for p in points],
             "power_law": law,

@@ -38,7 +38,10 @@ def test_cells_make_series_with_step_overrides(tmp_path):
     a = _cell(tmp_path / "a.json", 3000, 1.6)
     b = _cell(tmp_path / "b.json", 3000, 0.8)
     out = tmp_path / "curve.json"
-    assert curve.main(["--cell", f"x={a}@1000", "--cell", f"x={b}", "--out", str(out)]) == 0
+    args = ["--cell", f"x={a}@1000", "--cell", f"x={b}", "--out", str(out)]
+    assert curve.main(args) == 0
+    assert json.loads(out.read_text())["series"]["x"]["power_law"] is None  # two step counts: no law
+    assert curve.main([*args, "--min-points", "2"]) == 0
     result = json.loads(out.read_text())
     series = result["series"]["x"]
     assert [p["steps"] for p in series["points"]] == [1000, 3000]
