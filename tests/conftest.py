@@ -88,11 +88,30 @@ def tiny_fit(tmp_path_factory, tiny_data):
     return tiny_data, last.parent.parent
 
 
+def _movable(item) -> bool:
+    """Whether ``item`` can run out of its file's order: no xdist group (a group's tests run in
+    file order) and no module-scoped fixture (moving it would set that fixture up once more)."""
+    if item.get_closest_marker("xdist_group") is not None:
+        return False
+    info = getattr(item, "_fixtureinfo", None)
+    defs = info.name2fixturedefs.values() if info is not None else ()
+    return all(d.scope != "module" for chain in defs for d in chain)
+
+
 def pytest_collection_modifyitems(config, items):
-    """The notebooks (``--nbmake``) count as slow: each simulates, trains and rolls out."""
+    """The notebooks (``--nbmake``) count as slow: each simulates, trains and rolls out.
+
+    Slow tests that can move run first (longest first, as a scheduler of unequal jobs should):
+    ``pytest -n`` hands tests out in this order, and a long test handed out last keeps one
+    worker busy while the others wait. Everything else keeps its order.
+    """
     for item in items:
         if item.nodeid.endswith(".ipynb"):
             item.add_marker(pytest.mark.slow)
+    slow = [item for item in items if item.get_closest_marker("slow") is not None and _movable(item)]
+    first = sorted(slow, key=lambda item: not item.nodeid.endswith(".ipynb"))  # the notebooks: longest
+    moved = {id(item) for item in first}
+    items[:] = first + [item for item in items if id(item) not in moved]
 
 
 @pytest.fixture

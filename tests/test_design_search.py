@@ -109,6 +109,7 @@ def test_verify_with_the_simulator_as_its_own_predictor(quick_sim):
         verify_choice(quick_sim, chosen, simulator_predictor(quick_sim), "draw_in_mean", num_random=1)
 
 
+@pytest.mark.slow
 def test_runs_judge_each_setting_by_its_mean_over_perturbed_simulations(quick_sim):
     """Run 0 is the unperturbed simulator, run k the simulator from its own moved start; mean by hand."""
     from scipy.stats import spearmanr

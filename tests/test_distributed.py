@@ -64,6 +64,10 @@ def _ddp_dataset(folder, tiny_data):
     shutil.copyfile(tiny_data / "dataset.json", folder / "dataset.json")
 
 
+#: Both tests read the one DDP run (two CLI subprocesses of two ranks each): one xdist worker makes it.
+ddp_group = pytest.mark.xdist_group("ddp_run")
+
+
 @pytest.fixture(scope="module")
 def ddp_run(tmp_path_factory, tiny_data):
     root = tmp_path_factory.mktemp("ddp")
@@ -93,6 +97,7 @@ def ddp_run(tmp_path_factory, tiny_data):
 
 
 @pytest.mark.slow
+@ddp_group
 def test_ddp_fit_uses_the_single_process_statistics_and_validates_every_trajectory_once(ddp_run):
     root, out, logged = ddp_run
     module = NextStepLightningModule.load_from_checkpoint(out / "ckpt" / "last.ckpt", map_location="cpu")
@@ -119,6 +124,7 @@ def test_ddp_fit_uses_the_single_process_statistics_and_validates_every_trajecto
 
 
 @pytest.mark.slow
+@ddp_group
 def test_ddp_test_reports_every_trajectory_once_with_one_figure(ddp_run):
     _, out, _ = ddp_run
     with open(out / "reports" / "test_rmse.csv") as f:

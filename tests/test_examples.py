@@ -2,9 +2,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_hierarchy_levels_example_writes_a_figure(tmp_path):
     result = subprocess.run(
         [
@@ -75,6 +78,7 @@ def test_step_predictability_names_an_empty_folder(tmp_path):
     assert str(tmp_path) in result.stderr and "no trajectory" in result.stderr
 
 
+@pytest.mark.slow
 def test_step_predictability_model_errors_agree_with_the_data_references(small_sim):
     """A 'model' that returns the truth errs 0; one that returns zero / the last residual
     reproduces the data-only ``zero`` / ``const_vel`` columns (computed independently)."""

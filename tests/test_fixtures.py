@@ -24,6 +24,7 @@ from make_fixtures import (  # noqa: E402
 from torch_ampn.data import Trajectory  # noqa: E402
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "make, committed_dir, splits",
     [

@@ -28,6 +28,7 @@ def test_every_network_matches_the_ampn_parameter_count_within_5_percent(levels)
     assert layer_calls(levels) == (levels - 1) * 6 + 8
 
 
+@pytest.mark.slow
 def test_a_cell_trains_tests_resumes_and_reports(tmp_path):
     env = {**os.environ, "AMPN_REACH_DATA": str(tmp_path / "data"), "OMP_NUM_THREADS": "1"}
     cmd = [

@@ -195,6 +195,7 @@ def test_spread_report_flags_a_blow_up_by_total_and_by_step_motion():
     assert not report(29.9, 74.9)["blown_up"]
 
 
+@pytest.mark.slow
 def test_the_chaos_floor_and_the_spread_command(quick_sim, tmp_path, capsys):
     """The same settings from a start moved by 1e-6 mm: a small but real difference; the command's JSON."""
     from torch_ampn.cli.data import main
@@ -254,6 +255,7 @@ def test_two_run_reliability_by_hand(small_runs):
         two_run_reliability(runs[:2], runs[:2])
 
 
+@pytest.mark.slow
 def test_the_spread_command_reports_the_two_run_reliability(quick_sim, tmp_path, capsys):
     from torch_ampn.cli.data import main
     from torch_ampn.sim import simulate_batch

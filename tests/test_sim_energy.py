@@ -135,6 +135,7 @@ def test_the_stability_limit_accounts_for_explicit_viscosity():
     assert _model(**inviscid, damping=50.0).critical_time_step() == plain.critical_time_step()
 
 
+@pytest.mark.slow
 def test_a_forming_run_keeps_its_energy_balance_in_meta(tmp_path):
     from torch_ampn.sim import simulate_batch
 
@@ -237,6 +238,7 @@ def test_ply_on_face_contact_balances_its_forces_and_pushes_along_the_face_norma
     assert damping.abs().max() < 1e-12  # no normal relative velocity: no contact damping
 
 
+@pytest.mark.slow
 def test_face_contact_makes_far_less_energy_than_node_contact():
     """The nearest-node partner's plane, switched at every saved step and cut off past two
     thicknesses, makes energy; the closest face's, faded out, nearly none (a coarse run)."""

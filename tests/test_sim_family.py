@@ -71,6 +71,7 @@ def test_family_settings_are_checked():
     assert PartFamily.from_dict({"num_plies": [2, 3]}).num_plies == (2, 3)
 
 
+@pytest.mark.slow
 def test_a_family_dataset_gives_every_trajectory_its_part(tmp_path):
     family = PartFamily(num_plies=(2, 3))
     out = tmp_path / "family"

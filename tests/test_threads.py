@@ -328,6 +328,7 @@ print(json.dumps({"threads": torch.get_num_threads(), "seen": seen, "environment
 """
 
 
+@pytest.mark.slow
 def test_importing_and_calling_the_library_leaves_the_process_as_it_was():
     """Threads, environment and glibc's heap settings belong to the process's owner (a fresh interpreter)."""
     env = {k: v for k, v in os.environ.items() if k not in ("AMPN_THREADS", "OMP_NUM_THREADS")}

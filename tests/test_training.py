@@ -415,6 +415,7 @@ def _from_checkpoint(subcommand, ckpt, data_dir, out, *extra):
     return [subcommand, *args, *extra]  # given later, ``extra`` wins
 
 
+@pytest.mark.slow
 def test_test_and_predict_refuse_another_mesh_unless_told(data_dir, tmp_path, small_sim):
     """A checkpoint records its training meshes; test/predict on another mesh stop with the file's name."""
     out, ckpt = tmp_path / "out", TINY_CKPT
