@@ -3,6 +3,7 @@
 Imports are inside the fixtures, so that collecting a test file that uses none stays cheap.
 """
 
+import collections
 import os
 import sys
 from pathlib import Path
@@ -88,10 +89,17 @@ def tiny_fit(tmp_path_factory, tiny_data):
     return tiny_data, last.parent.parent
 
 
-def _movable(item) -> bool:
-    """Whether ``item`` can run out of its file's order: no xdist group (a group's tests run in
-    file order) and no module-scoped fixture (moving it would set that fixture up once more)."""
-    if item.get_closest_marker("xdist_group") is not None:
+def _group(item) -> str | None:
+    mark = item.get_closest_marker("xdist_group")
+    return None if mark is None else (mark.args[0] if mark.args else mark.kwargs.get("name"))
+
+
+def _movable(item, group_sizes: dict) -> bool:
+    """Whether ``item`` can run out of its file's order: in no xdist group of several tests (a
+    group's tests run in file order) and using no module-scoped fixture (moving it would set that
+    fixture up once more)."""
+    group = _group(item)
+    if group is not None and group_sizes[group] > 1:
         return False
     info = getattr(item, "_fixtureinfo", None)
     defs = info.name2fixturedefs.values() if info is not None else ()
@@ -108,7 +116,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.endswith(".ipynb"):
             item.add_marker(pytest.mark.slow)
-    slow = [item for item in items if item.get_closest_marker("slow") is not None and _movable(item)]
+    group_sizes = collections.Counter(_group(item) for item in items)
+    slow = [i for i in items if i.get_closest_marker("slow") is not None and _movable(i, group_sizes)]
     first = sorted(slow, key=lambda item: not item.nodeid.endswith(".ipynb"))  # the notebooks: longest
     moved = {id(item) for item in first}
     items[:] = first + [item for item in items if id(item) not in moved]

@@ -84,7 +84,6 @@ def _bash_prelude() -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("readme")
 def test_every_readme_block_runs_in_order_after_the_main_job(tiny_data, tmp_path):
     root = tmp_path / "repo"
     root.mkdir()
