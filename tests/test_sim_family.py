@@ -1,6 +1,8 @@
 """A family of parts: sampled parts, their configurations and a family dataset."""
 
+import dataclasses
 import json
+import math
 
 import pytest
 import torch
@@ -16,6 +18,7 @@ from torch_ampn.sim import (
     part_config,
     sample_part,
     simulate,
+    simulate_batch,
 )
 from torch_ampn.sim.geometry import die_surface
 from torch_ampn.sim.simulate import sample_process
@@ -61,13 +64,80 @@ def test_a_part_configuration_closes_the_tools_and_shapes_the_die():
     assert z[2].item() == pytest.approx(-0.5 * cfg.ply_thickness)  # outside the cavity: flat
 
 
+def _box(exponent: float) -> StampFormingConfig:
+    part = {
+        "shape": "box", "dome_depth": 40.0, "dome_axes": [60.0, 50.0], "dome_centre": 0.0,
+        "dome_flat_top": 0.3, "ply_angles": [0.0, 90.0], "dome_exponent": exponent,
+    }  # fmt: skip
+    return part_config(TINY, part)
+
+
+def test_a_box_punch_is_a_superellipse_with_the_gradient_of_its_depth():
+    """The footprint |x/a|^p + |y/b|^p = 1 by hand; the gradient against central differences (float64)."""
+    from torch_ampn.sim.geometry import dome_depth, punch_surface
+
+    box, ellipse = _box(6.0), _box(2.0)
+    assert box.dome_exponent == 6.0 and ellipse.dome_exponent == 2.0
+    # along an axis every exponent gives the same profile: the flat top ends at 0.3 a, the wall at a
+    on_axis = torch.tensor([[0.0, 0.0], [17.0, 0.0], [45.0, 0.0], [0.0, 30.0], [61.0, 0.0]]).double()
+    torch.testing.assert_close(dome_depth(on_axis, box)[0], dome_depth(on_axis, ellipse)[0])
+    # towards the corner: (0.8 a, 0.8 b) is outside the ellipse (rho = 1.13) but on the box's wall,
+    # rho = (2 * 0.8^6)^(1/6) = 0.898: the bump b = (1 + cos(pi s)) / 2 with s = (rho - 0.3) / 0.7,
+    # and a centred part is the union of its dome with itself, D (1 - (1 - b)^2)
+    corner = torch.tensor([[0.8 * 60.0, 0.8 * 50.0]], dtype=torch.float64)
+    rho = (2 * 0.8**6) ** (1 / 6)
+    b = 0.5 * (1 + math.cos(math.pi * (rho - 0.3) / 0.7))
+    expected = 40.0 * (1 - (1 - b) ** 2)
+    assert dome_depth(corner, box)[0].item() == pytest.approx(expected, rel=1e-12)
+    assert dome_depth(corner, ellipse)[0].item() == 0.0
+    # the gradient on the wall, off the axes and on them, against central differences
+    g = torch.Generator().manual_seed(0)
+    wall = torch.rand(64, 2, generator=g, dtype=torch.float64) * torch.tensor([70.0, 60.0])
+    xy = torch.cat([wall, on_axis])
+    for cfg in (box, _box(4.0), ellipse):
+        _, grad = punch_surface(xy, 12.0, cfg)
+        h = 1e-6
+        for i in range(2):
+            step = torch.zeros(2, dtype=torch.float64)
+            step[i] = h
+            fd = (punch_surface(xy + step, 12.0, cfg)[0] - punch_surface(xy - step, 12.0, cfg)[0]) / (2 * h)
+            torch.testing.assert_close(grad[:, i], fd, rtol=1e-5, atol=1e-6)
+
+
+def test_a_box_is_drawn_only_when_asked_and_forms():
+    default = [sample_part(PartFamily(), seed) for seed in range(50)]
+    assert all(p["shape"] != "box" and "dome_exponent" not in p for p in default)
+    boxes = [sample_part(PartFamily(shapes=("box",), box_exponent=(4.0, 8.0)), seed) for seed in range(20)]
+    assert all(p["shape"] == "box" and p["dome_centre"] == 0.0 for p in boxes)
+    assert all(4.0 <= p["dome_exponent"] <= 8.0 for p in boxes)
+    family = PartFamily(shapes=("box",), box_exponent=(5.0, 6.0))
+    assert PartFamily.from_dict(family.to_dict()) == family and "box_exponent" not in PartFamily().to_dict()
+    # a box draws the dome parameters a dome of the same seed draws (its exponent comes after them)
+    mixed = sample_part(PartFamily(shapes=("single_dome", "box")), 3)
+    dome = sample_part(PartFamily(shapes=("single_dome", "single_dome")), 3)
+    assert {k: v for k, v in mixed.items() if k not in ("shape", "dome_exponent")} == {
+        k: v for k, v in dome.items() if k != "shape"
+    }
+    with pytest.raises(ValueError, match="dome_exponent must be >= 2"):
+        _box(1.5)
+    # a box part simulates: every ply node ends on or above the die (within the contact's give)
+    cfg = dataclasses.replace(_box(6.0), num_steps=2)
+    traj = simulate_batch(cfg, [0])[0]
+    assert torch.isfinite(traj.pos).all()
+    ply = traj.ply_mask
+    z_die, _ = die_surface(traj.pos[-1, ply, :2].double(), cfg)
+    assert (traj.pos[-1, ply, 2].double() - z_die).min() > -0.5 * cfg.ply_thickness
+
+
 def test_family_settings_are_checked():
     with pytest.raises(ValueError, match="unknown setting"):
         PartFamily.from_dict({"dome_depht": [1, 2]})
     with pytest.raises(ValueError, match="num_plies"):
         PartFamily.from_dict({"num_plies": [3, 2]})
     with pytest.raises(ValueError, match="shapes"):
-        PartFamily.from_dict({"shapes": ["box"]})
+        PartFamily.from_dict({"shapes": ["hat"]})
+    with pytest.raises(ValueError, match="box_exponent"):
+        PartFamily.from_dict({"box_exponent": [1.5, 4.0]})
     assert PartFamily.from_dict({"num_plies": [2, 3]}).num_plies == (2, 3)
 
 

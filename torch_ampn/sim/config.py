@@ -15,6 +15,7 @@ ADDED_LATER: dict[str, Any] = {
     "contact_damping": 0.0,
     "ply_contact": "node",
     "selective_mass_scaling": False,
+    "dome_exponent": 2.0,
 }
 #: The default physics of data version 2 (2026-12-02 to 2026-12-05): mass-proportional damping
 #: only, ply on ply against the nearest node's plane. With the material of its day
@@ -45,7 +46,10 @@ class StampFormingConfig:
     Geometry: a quarter of a double-dome part, cut along the symmetry planes e1 = 0 and
     e2 = 0. Plies cover ``[0, ply_size[0]] x [0, ply_size[1]]``, stacked ``ply_thickness``
     apart starting at e3 = 0, on a fixed die. The punch moves ``stroke`` mm down along e3
-    over ``duration`` s; its dome apex starts ``punch_clearance`` mm above the stack.
+    over ``duration`` s; its dome apex starts ``punch_clearance`` mm above the stack. A dome's
+    footprint is the superellipse ``|x / a|^p + |y / b|^p = 1`` of its semi-axes ``dome_axes``
+    with ``p = dome_exponent``: 2 is an ellipse, larger values square it off towards a rounded
+    box (the punch of a box or hat section).
 
     Grippers: each pulls its anchor-ward force ``gripper_force_range`` through all plies: on
     the node nearest its point in every ply (``gripper_clamp_radius = 0``: a needle), or, with
@@ -87,6 +91,7 @@ class StampFormingConfig:
     dome_centre: float = 55.0
     dome_axes: tuple[float, float] = (70.0, 60.0)
     dome_flat_top: float = 0.35
+    dome_exponent: float = 2.0
     die_clearance: float = 3.0
 
     # process
@@ -200,6 +205,7 @@ class StampFormingConfig:
             (self.num_grippers in (0, 1, 2), "num_grippers must be 0, 1 or 2 (one per free edge)"),
             (self.duration > 0 and self.stroke >= 0, "duration must be positive and stroke non-negative"),
             (0 < self.dome_flat_top < 1, "dome_flat_top must be in (0, 1)"),
+            (self.dome_exponent >= 2, "dome_exponent must be >= 2 (2: an ellipse, more: a rounded box)"),
             (self.damping >= 0, "damping must be non-negative"),
             (self.matrix_viscosity >= 0, "matrix_viscosity must be non-negative"),
             (0 <= self.contact_damping <= 1, "contact_damping must be a fraction of critical in [0, 1]"),

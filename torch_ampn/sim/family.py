@@ -7,13 +7,17 @@ seed (reproducibly, from its own random stream, so the process setting that
 part. Every trajectory of a family dataset records its part in ``meta["part"]`` (and its
 whole configuration in ``meta["config"]``, as every simulated trajectory does).
 
-Punch shapes the tool description expresses (both are flat-topped, smoothly blended
-elliptic domes, see :mod:`torch_ampn.sim.geometry`):
+Punch shapes the tool description expresses (all flat-topped and smoothly blended, see
+:mod:`torch_ampn.sim.geometry`):
 
-* ``"double_dome"``: two domes at ``(+-dome_centre, 0)``, the seed paper's part (the quarter
-  model sees one dome and half of the saddle);
-* ``"single_dome"``: one dome at the origin (``dome_centre = 0``; the quarter model sees a
-  quarter of it).
+* ``"double_dome"``: two elliptic domes at ``(+-dome_centre, 0)``, the seed paper's part (the
+  quarter model sees one dome and half of the saddle);
+* ``"single_dome"``: one elliptic dome at the origin (``dome_centre = 0``; the quarter model
+  sees a quarter of it);
+* ``"box"``: one rounded box at the origin, the punch of a box section: its footprint is the
+  superellipse of exponent ``dome_exponent``, drawn from ``box_exponent``. A family draws it
+  only when asked (it is not in :class:`PartFamily`'s default ``shapes``), so that a model of
+  the domes can be tested on a tool shape it never saw.
 
 The stroke follows the depth (``punch_clearance + dome_depth``: the punch closes on the die at
 the end of every process).
@@ -31,7 +35,7 @@ import torch
 from torch_ampn.sim.config import StampFormingConfig
 
 #: Punch shapes a family can draw.
-SHAPES = ("double_dome", "single_dome")
+SHAPES = ("double_dome", "single_dome", "box")
 
 #: Offset of the part's random stream from the process's (``sample_process`` uses the seed itself).
 PART_STREAM = 0x5EED_0000
@@ -48,7 +52,9 @@ class PartFamily:
         dome_centre: Distance of the two domes' centres from the symmetry plane e1 = 0
             (``"double_dome"`` only).
         dome_flat_top: Flat top of a dome as a fraction of its semi-axes.
-        shapes: Punch shapes to draw from, equally likely (:data:`SHAPES`).
+        shapes: Punch shapes to draw from, equally likely (:data:`SHAPES`; the domes by default).
+        box_exponent: Exponent of a box's superellipse footprint (``"box"`` only; 2 would be an
+            ellipse).
         num_plies: Fewest and most plies of a stack.
         ply_angles: Fibre angles a ply draws from, equally likely and independently per ply.
     """
@@ -58,7 +64,8 @@ class PartFamily:
     dome_axis_y: tuple[float, float] = (50.0, 65.0)
     dome_centre: tuple[float, float] = (45.0, 60.0)
     dome_flat_top: tuple[float, float] = (0.25, 0.45)
-    shapes: tuple[str, ...] = SHAPES
+    shapes: tuple[str, ...] = ("double_dome", "single_dome")
+    box_exponent: tuple[float, float] = (4.0, 8.0)
     num_plies: tuple[int, int] = (2, 6)
     ply_angles: tuple[float, ...] = (0.0, 45.0, 90.0, -45.0)
 
@@ -75,8 +82,14 @@ class PartFamily:
         return family
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain ``dict`` (stored in ``dataset.json``)."""
-        return asdict(self)
+        """Plain ``dict`` (stored in ``dataset.json``).
+
+        ``box_exponent`` only for a family with boxes: a family of domes is the dict it was before.
+        """
+        values = asdict(self)
+        if "box" not in self.shapes:
+            del values["box_exponent"]
+        return values
 
     def validate(self) -> None:
         """``ValueError`` naming the first setting that cannot make parts."""
@@ -84,6 +97,9 @@ class PartFamily:
             low, high = getattr(self, name)
             if not (math.isfinite(low) and math.isfinite(high) and 0 <= low <= high):
                 raise ValueError(f"PartFamily: {name} must be a range 0 <= low <= high, got {(low, high)}")
+        low, high = self.box_exponent
+        if not (math.isfinite(high) and 2 <= low <= high):
+            raise ValueError(f"PartFamily: box_exponent must be a range 2 <= low <= high, got {(low, high)}")
         if not (0 < self.dome_flat_top[0] and self.dome_flat_top[1] < 1):
             raise ValueError(f"PartFamily: dome_flat_top must lie in (0, 1), got {self.dome_flat_top}")
         if not self.shapes or any(s not in SHAPES for s in self.shapes):
@@ -100,7 +116,8 @@ def sample_part(family: PartFamily, seed: int) -> dict[str, Any]:
 
     Returns:
         ``{"shape", "dome_depth", "dome_axes", "dome_centre", "dome_flat_top", "ply_angles"}``
-        (``dome_centre`` is 0 for a single dome).
+        (``dome_centre`` is 0 for a single dome and a box), and a box's ``"dome_exponent"``
+        (drawn after the rest, so that the domes of a family draw what they drew before boxes).
     """
     g = torch.Generator().manual_seed(PART_STREAM + int(seed))
 
@@ -118,7 +135,7 @@ def sample_part(family: PartFamily, seed: int) -> dict[str, Any]:
     flat = uniform(family.dome_flat_top)
     plies = int(torch.randint(family.num_plies[0], family.num_plies[1] + 1, (), generator=g))
     angles = tuple(float(choice(family.ply_angles)) for _ in range(plies))
-    return {
+    part = {
         "shape": shape,
         "dome_depth": depth,
         "dome_axes": axes,
@@ -126,6 +143,9 @@ def sample_part(family: PartFamily, seed: int) -> dict[str, Any]:
         "dome_flat_top": flat,
         "ply_angles": angles,
     }
+    if shape == "box":
+        part["dome_exponent"] = uniform(family.box_exponent)
+    return part
 
 
 def part_config(base: StampFormingConfig, part: Mapping[str, Any]) -> StampFormingConfig:

@@ -1,4 +1,4 @@
-"""Analytic quarter double-dome tool surfaces (height fields) and their meshes."""
+"""Analytic quarter tool surfaces (height fields: double domes, domes, rounded boxes) and their meshes."""
 
 from __future__ import annotations
 
@@ -19,12 +19,28 @@ def _bump(rho: Tensor, flat: float) -> tuple[Tensor, Tensor]:
     return b, db
 
 
+def _footprint_radius(dx: Tensor, dy: Tensor, exponent: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Superellipse radius ``rho = (|dx|^p + |dy|^p)^(1/p)`` of scaled offsets and its gradient.
+
+    Returns:
+        ``(rho, drho/ddx, drho/ddy)``, each ``[N]``; ``p >= 2`` keeps the gradient continuous.
+    """
+    ux, uy = dx.abs(), dy.abs()
+    rho = (ux.pow(exponent) + uy.pow(exponent)).pow(1.0 / exponent).clamp_min(1e-12)
+    scale = rho.pow(1.0 - exponent)  # d rho / d|dx| = (|dx| / rho)^(p - 1)
+    drho_dx = torch.sign(dx) * ux.pow(exponent - 1.0) * scale
+    drho_dy = torch.sign(dy) * uy.pow(exponent - 1.0) * scale
+    return rho, drho_dx, drho_dy
+
+
 def dome_depth(xy: Tensor, cfg: StampFormingConfig, grow: float = 0.0) -> tuple[Tensor, Tensor]:
     """Depth ``D(x, y) >= 0`` of the double-dome cavity and its gradient.
 
-    Two flat-topped elliptic domes centred at ``(+-dome_centre, 0)`` joined by a smooth
-    union ``1 - (1 - b1)(1 - b2)``; the quarter model sees one dome and half of the saddle
-    between them. ``grow`` widens both semi-axes (the die cavity is wider than the punch).
+    Two flat-topped domes centred at ``(+-dome_centre, 0)`` joined by a smooth union
+    ``1 - (1 - b1)(1 - b2)``; the quarter model sees one dome and half of the saddle between
+    them. A dome's footprint is an ellipse (``dome_exponent = 2``) or, for larger exponents, a
+    superellipse: a rounded box. ``grow`` widens both semi-axes (the die cavity is wider than the
+    punch).
 
     Args:
         xy: ``[N, 2]`` points in the e1-e2 plane.
@@ -38,9 +54,14 @@ def dome_depth(xy: Tensor, cfg: StampFormingConfig, grow: float = 0.0) -> tuple[
     out_b, out_g = [], []
     for cx in (cfg.dome_centre, -cfg.dome_centre):
         dx, dy = (xy[:, 0] - cx) / ax, xy[:, 1] / ay
-        rho = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
-        b, db = _bump(rho, cfg.dome_flat_top)
-        grad = torch.stack([db * dx / (rho * ax), db * dy / (rho * ay)], 1)
+        if cfg.dome_exponent == 2.0:  # the ellipse, in the form every dataset before boxes used
+            rho = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
+            b, db = _bump(rho, cfg.dome_flat_top)
+            grad = torch.stack([db * dx / (rho * ax), db * dy / (rho * ay)], 1)
+        else:
+            rho, drho_dx, drho_dy = _footprint_radius(dx, dy, cfg.dome_exponent)
+            b, db = _bump(rho, cfg.dome_flat_top)
+            grad = torch.stack([db * drho_dx / ax, db * drho_dy / ay], 1)
         out_b.append(b)
         out_g.append(grad)
     (b1, b2), (g1, g2) = out_b, out_g
