@@ -10,7 +10,8 @@ network, seed and number of training steps (``--steps``, not a time limit):
              part: ``torch_ampn.sim.PartFamily``'s ranges), tested on parts the training split
              never saw: inside the ranges (``inside``) and outside them, one dataset per
              ``--extrapolation NAME=JSON`` (default: ``deeper``, domes 55-65 mm deep where
-             training has 40-55; ``angle30``, plies at +-30 deg where training has 0/45/90/-45);
+             training has 40-55; ``angle30``, plies at +-30 deg where training has 0/45/90/-45;
+             ``box``, a box-section punch, a tool shape the family never draws);
              and on ``--num-seen`` of its own training trajectories (``seen``: parts and
              settings it was trained on), which tells underfitting from a generalisation gap
 
@@ -54,6 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXTRAPOLATIONS = {
     "deeper": {"dome_depth": [55.0, 65.0]},
     "angle30": {"ply_angles": [30.0, -30.0]},
+    "box": {"shapes": ["box"]},
 }
 SET_LABELS = {
     "single": "single-part model, its own part (unseen settings)",
