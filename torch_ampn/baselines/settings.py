@@ -66,8 +66,24 @@ class TrajectoryBaseline:
     Subclasses implement :meth:`_fit` and :meth:`_predict` on flattened ply positions.
     """
 
+    #: Whether the inputs are the process settings and the part's parameters
+    #: (:func:`~torch_ampn.baselines.family.part_parameters`) and only the plies must share a mesh:
+    #: parts of a family with one ply count (:class:`~torch_ampn.baselines.family.PerPlyCount`).
+    parts: bool = False
+
     def __init__(self) -> None:
         self._template: Trajectory | None = None
+
+    def settings_of(self, traj: Trajectory) -> Tensor:
+        """The inputs of ``traj``, ``[S]`` float64.
+
+        :func:`process_settings`, and with :attr:`parts` the part's parameters after them.
+        """
+        if not self.parts:
+            return process_settings(traj)
+        from torch_ampn.baselines.family import part_parameters
+
+        return torch.cat([process_settings(traj), part_parameters(traj)])
 
     # ---- fitting ------------------------------------------------------------------------
     def fit(self, trajectories: Sequence[Trajectory]) -> TrajectoryBaseline:
@@ -82,11 +98,10 @@ class TrajectoryBaseline:
             raise ValueError(f"{type(self).__name__}.fit needs at least one trajectory")
         first = trajectories[0]
         for traj in trajectories[1:]:
-            _check_same_mesh(first, traj)
+            _check_same_mesh(first, traj, plies_only=self.parts)
         self._template = first
-        self._ply = first.ply_mask  # [N]
-        settings = torch.stack([process_settings(t) for t in trajectories]).numpy()  # [M, S]
-        positions = torch.stack([t.pos[:, self._ply].double() for t in trajectories])  # [M, T+1, P, 3]
+        settings = torch.stack([self.settings_of(t) for t in trajectories]).numpy()  # [M, S]
+        positions = torch.stack([t.pos[:, t.ply_mask].double() for t in trajectories])  # [M, T+1, P, 3]
         self._shape = tuple(positions.shape[1:])
         self._fit(settings, positions.reshape(len(trajectories), -1).numpy())
         return self
@@ -106,11 +121,11 @@ class TrajectoryBaseline:
             raise RuntimeError(f"{type(self).__name__}: call fit() first")
         x = torch.as_tensor(settings, dtype=torch.float64)
         x = x.reshape(1, -1) if x.dim() == 1 else x
-        expected = process_settings(self._template).numel()
+        expected = self.settings_of(self._template).numel()
         if x.size(1) != expected:
-            raise ValueError(
-                f"settings need {expected} columns ({setting_names(expected // 2)}), got {x.size(1)}"
-            )
+            grippers = process_settings(self._template).numel() // 2
+            what = ", ".join(setting_names(grippers)) + (" and the part's parameters" if self.parts else "")
+            raise ValueError(f"settings need {expected} columns ({what}), got {x.size(1)}")
         out = self._predict(x.numpy())  # [B, D]
         return torch.from_numpy(np.array(out, dtype=np.float64)).float().reshape(x.size(0), *self._shape)
 
@@ -132,12 +147,12 @@ class TrajectoryBaseline:
         if not trajs:
             return []
         for traj in trajs:
-            _check_same_mesh(self._template, traj)
-        plies = self.predict_settings(torch.stack([process_settings(t) for t in trajs]))  # [B, T+1, P, 3]
+            _check_same_mesh(self._template, traj, plies_only=self.parts)
+        plies = self.predict_settings(torch.stack([self.settings_of(t) for t in trajs]))  # [B, T+1, P, 3]
         out = []
         for traj, ply_pos in zip(trajs, plies, strict=True):
             pos = traj.pos.clone().float()
-            pos[:, self._ply] = ply_pos
+            pos[:, traj.ply_mask] = ply_pos
             out.append(pos)
         return out
 
@@ -145,14 +160,19 @@ class TrajectoryBaseline:
         return f"{type(self).__name__}()"
 
 
-def _check_same_mesh(reference: Trajectory, traj: Trajectory) -> None:
-    """Raise a one-line ``ValueError`` where ``traj`` is not on ``reference``'s mesh."""
+def _check_same_mesh(reference: Trajectory, traj: Trajectory, plies_only: bool = False) -> None:
+    """Raise a one-line ``ValueError`` where ``traj`` is not on ``reference``'s mesh.
+
+    With ``plies_only``: where its plies are not on ``reference``'s plies (the tools may differ).
+    """
     name = traj.meta.get("name", "a trajectory")
     ref_name = reference.meta.get("name", "the first")
+    ref_ply, ply = (reference.ply_mask, traj.ply_mask) if plies_only else (slice(None), slice(None))
+    ref_pos, pos = reference.pos[:, ref_ply], traj.pos[:, ply]
     checks = [
-        ("pos", tuple(traj.pos.shape) == tuple(reference.pos.shape), f"shape {list(traj.pos.shape)}"),
-        ("component", torch.equal(traj.component, reference.component), "other components"),
-        ("node_type", torch.equal(traj.node_type, reference.node_type), "other node types"),
+        ("pos", tuple(pos.shape) == tuple(ref_pos.shape), f"shape {list(pos.shape)}"),
+        ("component", torch.equal(traj.component[ply], reference.component[ref_ply]), "other components"),
+        ("node_type", torch.equal(traj.node_type[ply], reference.node_type[ref_ply]), "other node types"),
         (
             "gripper_force",
             traj.gripper_force.numel() == reference.gripper_force.numel(),
@@ -165,7 +185,7 @@ def _check_same_mesh(reference: Trajectory, traj: Trajectory) -> None:
                 f"{name}: field {field!r} differs from {ref_name}'s ({what}): the setting-aware "
                 "baselines need trajectories of one mesh"
             )
-    if not torch.allclose(traj.pos[0], reference.pos[0], atol=1e-4, rtol=0):
+    if not torch.allclose(pos[0], ref_pos[0], atol=1e-4, rtol=0):
         raise ValueError(
             f"{name}: field 'pos' starts elsewhere than {ref_name}'s (another mesh): the setting-aware "
             "baselines need trajectories of one mesh"
