@@ -284,3 +284,17 @@ def test_parts_with_one_mesh_but_other_tools_compile_their_own_steps(monkeypatch
     again = simulate_batch(configs[0], [6], compile=True)[0]  # another seed of the first part
     assert graphs["unique_graphs"] - before == 2  # its compiled step, reused
     assert again.num_nodes == first.num_nodes
+
+
+def test_the_example_families_lie_outside_the_default_ranges():
+    """examples/families/*.yaml: the test sets beyond the default family that docs/family.md names."""
+    from pathlib import Path
+
+    folder = Path(__file__).parents[1] / "examples" / "families"
+    default = PartFamily()
+    deeper, angle30, box = (data_cli._family(str(folder / f"{n}.yaml")) for n in ("deeper", "angle30", "box"))
+    assert deeper.dome_depth[0] >= default.dome_depth[1] and deeper.shapes == default.shapes
+    assert not set(angle30.ply_angles) & set(default.ply_angles)
+    assert box.shapes == ("box",) and "box" not in default.shapes
+    parts = [sample_part(box, seed) for seed in range(5)]
+    assert all(p["shape"] == "box" and "dome_exponent" in p for p in parts)
