@@ -135,3 +135,39 @@ def test_a_part_no_parametric_surrogate_can_place_is_refused_in_one_line(family)
     with pytest.raises(ValueError, match="starts elsewhere"):
         MeanTrajectory().fit([t for t in train if len(t.meta["part"]["ply_angles"]) == 2])
     assert math.isfinite(float(pod_gp.predict(test[0]).sum()))
+
+
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
+def test_a_test_report_leaves_out_the_baselines_that_cannot_place_a_part(family, tmp_path):
+    """torch-ampn test on a family: a box part gets NaN from every setting-aware baseline, which the
+    summary then leaves out (the trivial ones stay); the reason is kept for the printout."""
+    from torch_ampn.baselines import fit_setting_baselines
+    from torch_ampn.data import HierarchyCache
+    from torch_ampn.training.baseline_rollouts import BaselineRollouts
+    from torch_ampn.training.report import TestReport
+
+    train, test = family
+    setting, reason = fit_setting_baselines(train)
+    assert reason is None and all(isinstance(b, PerPlyCount) for b in setting.values())
+    rollouts = BaselineRollouts([3.0], setting)
+    box = copy.deepcopy(test[0])
+    box.meta["part"] = {**box.meta["part"], "shape": "box", "dome_exponent": 6.0, "dome_centre": 0.0}
+    report = TestReport(tmp_path)
+    for k, traj in enumerate([test[0], box]):
+        item = SimpleNamespace(trajectory=traj, hierarchy=HierarchyCache(None, max_levels=2)(traj))
+        curves = rollouts.rmse(item)
+        placed = k == 0
+        assert all(bool(torch.isfinite(curves[n]).all()) == placed for n in setting)
+        assert torch.isfinite(curves["static"]).all() and torch.isfinite(curves["rigid_r3"]).all()
+        model = curves["static"] * 0.5
+        report.rows.append({"trajectory": f"t{k}", "model": float(model[1:].mean()), "rollout_seconds": 1.0,
+                            **{n: float(c[1:].mean()) for n, c in curves.items()}})  # fmt: skip
+        for name, curve in {"model": model, **curves}.items():
+            report.curves.setdefault(name, []).append(curve)
+    assert set(rollouts.refused) == set(setting) and "a 'box' part" in rollouts.refused["pod_gp"]
+    summary = report.summary()
+    assert "setting_baseline" not in summary and "setting_effect_r2" not in summary
+    assert summary["static_rmse"] == pytest.approx((report.rows[0]["static"] + report.rows[1]["static"]) / 2)
+    # a test set of placeable parts keeps them all
+    report.rows, report.curves = report.rows[:1], {n: c[:1] for n, c in report.curves.items()}
+    assert report.summary()["setting_baseline"] in setting

@@ -29,6 +29,14 @@ from torch_ampn.baselines.settings import (
 )
 from torch_ampn.data.trajectory import Trajectory
 
+
+class UnplaceablePart(ValueError):
+    """A part of a ply count or tool shape that no training part had.
+
+    No parametric surrogate can place it (a family's test set beyond its ranges).
+    """
+
+
 #: The tool-geometry entries of :func:`part_parameters`, in their order.
 GEOMETRY_NAMES = ("dome_depth", "dome_axis_x", "dome_axis_y", "dome_centre", "dome_flat_top", "dome_exponent")
 
@@ -95,14 +103,17 @@ class PerPlyCount:
     def fit(self, trajectories: Sequence[Trajectory]) -> PerPlyCount:
         """Fit one baseline per ply count on ``trajectories`` (a family's training parts); returns ``self``.
 
+        A ply count with fewer than 2 training parts gets no baseline (its parts are refused).
+
         Raises:
-            ValueError: If there are none, or one records no part.
+            ValueError: If no ply count has 2 parts, or a trajectory records no part.
         """
         groups: dict[int, list[Trajectory]] = {}
         for traj in trajectories:
             groups.setdefault(num_plies(traj), []).append(traj)
+        groups = {plies: group for plies, group in groups.items() if len(group) >= 2}
         if not groups:
-            raise ValueError("PerPlyCount.fit needs at least one trajectory")
+            raise ValueError("PerPlyCount.fit needs at least 2 training parts of one ply count")
         self.baselines, self.shapes = {}, {}
         for plies, group in sorted(groups.items()):
             baseline = self.make()
@@ -117,12 +128,12 @@ class PerPlyCount:
         name, plies = traj.meta.get("name", "trajectory"), num_plies(traj)
         shape = _part(traj).get("shape", "")
         if plies not in self.baselines:
-            raise ValueError(
+            raise UnplaceablePart(
                 f"{name}: a part of {plies} plies; the baselines were fitted on parts of "
                 f"{sorted(self.baselines)} plies, and a parametric surrogate cannot place another stack"
             )
         if shape not in self.shapes[plies]:
-            raise ValueError(
+            raise UnplaceablePart(
                 f"{name}: a {shape!r} part; the {plies}-ply training parts were "
                 f"{sorted(self.shapes[plies])}, and a parametric surrogate cannot place another tool shape"
             )
@@ -168,6 +179,7 @@ def family_baselines() -> dict[str, PerPlyCount]:
 __all__ = [
     "GEOMETRY_NAMES",
     "PerPlyCount",
+    "UnplaceablePart",
     "family_baselines",
     "num_plies",
     "part_parameter_names",

@@ -410,7 +410,8 @@ def fit_setting_baselines(
 
     Returns:
         ``(baselines, None)``, or ``({}, reason)`` where they do not apply (fewer than 2
-        trajectories, several meshes, no recorded settings).
+        trajectories, several meshes, no recorded settings). The trajectories of a family of
+        parts (each records its ``meta["part"]``) get :func:`~torch_ampn.baselines.family_baselines`.
     """
     trajectories = list(trajectories)
     if len(trajectories) < 2:
@@ -418,6 +419,10 @@ def fit_setting_baselines(
     try:
         for traj in trajectories:
             process_settings(traj)
+        if all("part" in traj.meta for traj in trajectories):  # a family of parts: per ply count
+            from torch_ampn.baselines.family import family_baselines
+
+            return {name: b.fit(trajectories) for name, b in family_baselines().items()}, None
         fitted = dict(fitted or {})
         return {
             name: fitted[name] if name in fitted else b.fit(trajectories)

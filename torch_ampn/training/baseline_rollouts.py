@@ -5,9 +5,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from torch_ampn.baselines import RigidWithPunch, fit_setting_baselines, static_plies
+from torch_ampn.baselines.family import UnplaceablePart
 from torch_ampn.rollout import rollout, rollout_rmse
 from torch_ampn.training.items import RolloutItem
 from torch_ampn.training.protocol import forecast_source
@@ -20,6 +22,10 @@ class BaselineRollouts:
     within each touch radius (``rigid_r<radius>``); they ignore the training data. Setting-aware
     (:func:`~torch_ampn.baselines.fit_setting_baselines`): fitted on the training trajectories.
 
+    On a family of parts, a setting-aware baseline cannot place a part of a tool shape or ply
+    count that no training part had: its curve is NaN there (so the report leaves it out of the
+    comparison) and :attr:`refused` says why.
+
     Args:
         touch_radii: Radii (mm) of the rigid-with-punch baselines.
         setting_baselines: Fitted setting-aware baselines by name (``{}``: none).
@@ -28,6 +34,8 @@ class BaselineRollouts:
     def __init__(self, touch_radii: Sequence[float], setting_baselines: dict[str, Any] | None = None) -> None:
         self.touch_radii = tuple(touch_radii)
         self.setting_baselines = dict(setting_baselines or {})
+        #: Why a setting-aware baseline was not applied to some trajectory, by name (the first reason).
+        self.refused: dict[str, str] = {}
 
     @classmethod
     def fitted(cls, datamodule: Any, touch_radii: Sequence[float]) -> tuple[BaselineRollouts, str | None]:
@@ -50,5 +58,9 @@ class BaselineRollouts:
             rigid = rollout(RigidWithPunch(radius), traj, hierarchy)
             out[f"rigid_r{radius:g}"] = rollout_rmse(rigid, traj.pos, traj.ply_mask)
         for name, baseline in self.setting_baselines.items():
-            out[name] = rollout_rmse(baseline.predict(traj), traj.pos, traj.ply_mask)
+            try:
+                out[name] = rollout_rmse(baseline.predict(traj), traj.pos, traj.ply_mask)
+            except UnplaceablePart as err:
+                self.refused.setdefault(name, str(err))
+                out[name] = torch.full_like(out["static"], float("nan"))
         return out

@@ -460,6 +460,8 @@ class SurrogateLightningModule(L.LightningModule):
         assert self._report is not None
         parts = gather_objects((self._report.rows, self._report.curves))
         if self.trainer.is_global_zero:
+            for name, why in self._baselines.refused.items():  # on this rank's trajectories
+                print(f"setting-aware baseline {name}: left out of the comparison ({why})")
             self._report.merge(parts)
             summary = self._report.finish()
             numbers = {f"test/{k}": float(v) for k, v in summary.items() if isinstance(v, (int, float))}

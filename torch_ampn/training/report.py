@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -180,8 +181,9 @@ class TestReport:
         if best_rigid:
             out["rigid_rmse"] = rigid[best_rigid]
             out["rigid_touch_radius"] = float(best_rigid.removeprefix("rigid_r"))
-        aware = {k: mean[k] for k in SETTING_BASELINES if k in mean}
-        if aware:
+        # a baseline that could not place some trajectory (NaN there) is left out of the comparison
+        aware = {k: mean[k] for k in SETTING_BASELINES if k in mean and math.isfinite(mean[k])}
+        if "mean_trajectory" in aware:
             from torch_ampn.baselines import setting_effect_r2
 
             best = min(aware, key=aware.get)
