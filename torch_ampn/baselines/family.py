@@ -146,13 +146,14 @@ class PerPlyCount:
     def predict_many(self, trajectories: Sequence[Trajectory]) -> list[Tensor]:
         """:meth:`predict` of each trajectory (one batch per ply count), in their order."""
         trajs = list(trajectories)
-        out: list[Tensor | None] = [None] * len(trajs)
-        batches: dict[int, list[int]] = {}
+        batches: dict[int, list[int]] = {}  # ply count -> indices of its trajectories
         for i, traj in enumerate(trajs):
-            batches.setdefault(id(self._baseline_of(traj)), []).append(i)
-        for index in batches.values():
-            baseline = self._baseline_of(trajs[index[0]])
-            for i, pos in zip(index, baseline.predict_many([trajs[i] for i in index]), strict=True):
+            self._baseline_of(traj)  # refuses a part no baseline can place
+            batches.setdefault(num_plies(traj), []).append(i)
+        out: list[Tensor | None] = [None] * len(trajs)
+        for plies, index in batches.items():
+            predicted = self.baselines[plies].predict_many([trajs[i] for i in index])
+            for i, pos in zip(index, predicted, strict=True):
                 out[i] = pos
         return out
 
